@@ -1,0 +1,3 @@
+//! Metrics (PSNR, scaled albedo, MSE, angular error) and reports.
+
+pub mod metrics;

@@ -1,0 +1,8 @@
+//! Meshes, their files (OBJ via tobj, glTF via gltf), and ray queries through a BVH (obvhs).
+
+pub mod bvh;
+pub mod gltf_io;
+pub mod mesh;
+pub mod obj;
+
+pub use mesh::{Mesh, Part};

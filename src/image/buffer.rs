@@ -1,0 +1,141 @@
+use glam::{Vec3, Vec4};
+
+/// An image of `channels` interleaved f32 values per pixel, row 0 at the top.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Image {
+    pub width: usize,
+    pub height: usize,
+    pub channels: usize,
+    pub data: Vec<f32>,
+}
+
+impl Image {
+    pub fn new(width: usize, height: usize, channels: usize) -> Self {
+        Image { width, height, channels, data: vec![0.0; width * height * channels] }
+    }
+
+    pub fn filled(width: usize, height: usize, value: &[f32]) -> Self {
+        let mut data = Vec::with_capacity(width * height * value.len());
+        for _ in 0..width * height {
+            data.extend_from_slice(value);
+        }
+        Image { width, height, channels: value.len(), data }
+    }
+
+    pub fn pixel_count(&self) -> usize {
+        self.width * self.height
+    }
+
+    pub fn pixel(&self, x: usize, y: usize) -> &[f32] {
+        let i = (y * self.width + x) * self.channels;
+        &self.data[i..i + self.channels]
+    }
+
+    pub fn pixel_mut(&mut self, x: usize, y: usize) -> &mut [f32] {
+        let i = (y * self.width + x) * self.channels;
+        &mut self.data[i..i + self.channels]
+    }
+
+    /// The first three channels of pixel `i` (row-major index).
+    pub fn rgb(&self, i: usize) -> Vec3 {
+        let p = &self.data[i * self.channels..];
+        match self.channels {
+            1 | 2 => Vec3::splat(p[0]),
+            _ => Vec3::new(p[0], p[1], p[2]),
+        }
+    }
+
+    /// RGBA of pixel `i`; alpha 1 when the image has none.
+    pub fn rgba(&self, i: usize) -> Vec4 {
+        let a = if self.channels == 4 || self.channels == 2 { self.data[i * self.channels + self.channels - 1] } else { 1.0 };
+        self.rgb(i).extend(a)
+    }
+
+    pub fn set_rgb(&mut self, i: usize, v: Vec3) {
+        let c = self.channels;
+        let p = &mut self.data[i * c..];
+        p[0] = v.x;
+        if c >= 3 {
+            p[1] = v.y;
+            p[2] = v.z;
+        }
+    }
+
+    /// One channel as its own single-channel image.
+    pub fn channel(&self, c: usize) -> Image {
+        let data = self.data.chunks_exact(self.channels).map(|p| p[c]).collect();
+        Image { width: self.width, height: self.height, channels: 1, data }
+    }
+
+    /// Apply `f` to every value (e.g. a transfer curve) on the first `n` channels.
+    pub fn map_channels(&self, n: usize, f: impl Fn(f32) -> f32) -> Image {
+        let mut out = self.clone();
+        for p in out.data.chunks_exact_mut(self.channels) {
+            for v in p.iter_mut().take(n) {
+                *v = f(*v);
+            }
+        }
+        out
+    }
+
+    /// Bilinear lookup at continuous pixel coordinates (pixel centres at +0.5), clamped to the edge.
+    pub fn bilinear(&self, x: f32, y: f32, out: &mut [f32]) {
+        let fx = (x - 0.5).clamp(0.0, (self.width - 1) as f32);
+        let fy = (y - 0.5).clamp(0.0, (self.height - 1) as f32);
+        let (x0, y0) = (fx.floor() as usize, fy.floor() as usize);
+        let (x1, y1) = ((x0 + 1).min(self.width - 1), (y0 + 1).min(self.height - 1));
+        let (tx, ty) = (fx - x0 as f32, fy - y0 as f32);
+        for c in 0..self.channels.min(out.len()) {
+            let a = self.pixel(x0, y0)[c] * (1.0 - tx) + self.pixel(x1, y0)[c] * tx;
+            let b = self.pixel(x0, y1)[c] * (1.0 - tx) + self.pixel(x1, y1)[c] * tx;
+            out[c] = a * (1.0 - ty) + b * ty;
+        }
+    }
+
+    /// Average `factor`×`factor` blocks (box filter), e.g. to resolve a supersampled render.
+    pub fn downsample_box(&self, factor: usize) -> Image {
+        assert!(factor >= 1 && self.width % factor == 0 && self.height % factor == 0);
+        let (w, h, c) = (self.width / factor, self.height / factor, self.channels);
+        let mut out = Image::new(w, h, c);
+        let norm = 1.0 / (factor * factor) as f32;
+        for y in 0..h {
+            for x in 0..w {
+                let dst = (y * w + x) * c;
+                for sy in 0..factor {
+                    for sx in 0..factor {
+                        let src = self.pixel(x * factor + sx, y * factor + sy);
+                        for k in 0..c {
+                            out.data[dst + k] += src[k] * norm;
+                        }
+                    }
+                }
+            }
+        }
+        out
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn bilinear_hits_pixel_centres_and_midpoints() {
+        let mut img = Image::new(2, 1, 1);
+        img.data = vec![1.0, 3.0];
+        let mut v = [0.0];
+        img.bilinear(0.5, 0.5, &mut v);
+        assert_eq!(v[0], 1.0);
+        img.bilinear(1.0, 0.5, &mut v);
+        assert_eq!(v[0], 2.0);
+        img.bilinear(5.0, 0.5, &mut v);
+        assert_eq!(v[0], 3.0);
+    }
+
+    #[test]
+    fn box_downsample_averages_blocks() {
+        let mut img = Image::new(2, 2, 1);
+        img.data = vec![1.0, 2.0, 3.0, 6.0];
+        assert_eq!(img.downsample_box(2).data, vec![3.0]);
+    }
+}

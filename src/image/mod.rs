@@ -1,0 +1,6 @@
+//! Pictures in memory (linear f32, interleaved channels) and their files (PNG, EXR, HDR).
+
+mod buffer;
+pub mod io;
+
+pub use buffer::Image;

@@ -1,0 +1,14 @@
+//! reconstruct: shape, material and light from multi-view images by differentiable rendering
+//! (NVDiffRecMC-style), optionally guided by IDArb pseudo-labels. See README.md and DESIGN.md.
+
+pub mod color;
+pub mod eval;
+pub mod geometry;
+pub mod image;
+pub mod light;
+pub mod material;
+pub mod math;
+pub mod prior;
+pub mod render;
+pub mod rng;
+pub mod scene;

@@ -1,0 +1,6 @@
+//! Surface materials: the GGX/Lambert BRDF of DESIGN.md §3 and per-part material descriptions.
+
+pub mod brdf;
+mod part;
+
+pub use part::{BaseColor, PartMaterial, SurfaceParams};

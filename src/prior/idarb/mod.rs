@@ -1,0 +1,1 @@
+//! The IDArb network (ICLR 2025) ported to candle.
