@@ -1,0 +1,1 @@
+//! Reading and writing pictures: PNG (8/16-bit), Radiance HDR, OpenEXR.
