@@ -4,3 +4,4 @@ pub mod effects;
 pub mod gbuffer;
 pub mod montecarlo;
 pub mod splitsum;
+pub mod view;

@@ -1,0 +1,150 @@
+//! Monte Carlo direct lighting (NVDiffRecMC): per pixel, stratified light samples (texel pdf ∝
+//! max(rgb)·solid angle) and BSDF samples (cosine or GGX VNDF) combined with the balance heuristic,
+//! shadow rays through the BVH when shadows are on. Results are demodulated: `diffuse` is the
+//! irradiance term before the kd(1−m) product (what a denoiser should filter), `specular` is final.
+//! Each pixel draws from its own seeded stream, so a render is reproducible in any thread order.
+
+use glam::Vec3;
+use rayon::prelude::*;
+
+use crate::geometry::bvh::Bvh;
+use crate::light::sampler::LightSampler;
+use crate::material::brdf::{self, COS_MAX, COS_MIN};
+use crate::material::SurfaceParams;
+use crate::math::Frame;
+use crate::render::effects::Effects;
+use crate::render::gbuffer::{GBuffer, Surfel};
+use crate::rng::Sampler;
+
+#[derive(Clone, Copy, Debug)]
+pub struct McSettings {
+    pub spp: u32,
+    pub seed: u64,
+    pub effects: Effects,
+    /// Shadow-ray offset along the geometric normal, in world units (scale with the scene).
+    pub ray_epsilon: f32,
+}
+
+/// Demodulated shading of one view.
+pub struct McBuffers {
+    /// Σ L·cos/π·w/pdf: multiply by kd(1−m) for diffuse radiance.
+    pub diffuse: Vec<Vec3>,
+    /// Specular radiance.
+    pub specular: Vec<Vec3>,
+}
+
+impl McBuffers {
+    /// Remodulate: radiance per pixel.
+    pub fn radiance(&self, params: &[Option<SurfaceParams>]) -> Vec<Vec3> {
+        self.diffuse
+            .iter()
+            .zip(&self.specular)
+            .zip(params)
+            .map(|((d, s), p)| p.map_or(Vec3::ZERO, |p| p.kd * (1.0 - p.metallic) * *d + *s))
+            .collect()
+    }
+}
+
+fn luminance(c: Vec3) -> f32 {
+    c.dot(Vec3::new(0.2126, 0.7152, 0.0722))
+}
+
+/// Probability of sampling the specular lobe: its Fresnel-weighted share, kept within [0.1, 0.9]
+/// so neither lobe is starved.
+fn specular_probability(p: &SurfaceParams, nov: f32, effects: Effects) -> f32 {
+    if !effects.specular {
+        return 0.0;
+    }
+    let f0 = Vec3::splat(0.04).lerp(p.kd, p.metallic);
+    let fresnel = f0 + (Vec3::ONE - f0) * (1.0 - nov).powi(5);
+    let spec = luminance(fresnel);
+    let diff = luminance(p.kd) * (1.0 - p.metallic);
+    if diff <= 0.0 {
+        return 1.0;
+    }
+    (spec / (spec + diff)).clamp(0.1, 0.9)
+}
+
+/// Diffuse (demodulated) and specular estimates for one surfel, `spp` samples of each strategy.
+pub fn shade_point(s: &Surfel, wo: Vec3, p: &SurfaceParams, light: &LightSampler, bvh: &Bvh, settings: &McSettings, rng: &mut Sampler) -> (Vec3, Vec3) {
+    let frame = Frame::from_normal(s.normal);
+    let wo_l = frame.to_local(wo);
+    let nov = wo_l.z.clamp(COS_MIN, COS_MAX);
+    let alpha = brdf::alpha(p.roughness);
+    let ps = specular_probability(p, nov, settings.effects);
+    let bsdf_pdf = |wi_l: Vec3| -> f32 {
+        let mut pdf = (1.0 - ps) * brdf::pdf_cosine(wi_l);
+        if ps > 0.0 {
+            pdf += ps * brdf::pdf_ggx_vndf(wo_l, wi_l, alpha);
+        }
+        pdf
+    };
+    let origin = s.position + s.geo_normal * settings.ray_epsilon;
+    let visible = |wi: Vec3| -> bool {
+        // Light arriving from behind the geometric surface is blocked by the surface itself.
+        if wi.dot(s.geo_normal) <= 0.0 {
+            return false;
+        }
+        !settings.effects.shadows || !bvh.any_hit(origin, wi, settings.ray_epsilon, f32::INFINITY)
+    };
+    // Radiance contribution of direction wi (local wi_l) with MIS weight / pdf already folded in `scale`.
+    let contribution = |wi_l: Vec3, radiance: Vec3, scale: f32| -> (Vec3, Vec3) {
+        let cos = wi_l.z.clamp(0.0, COS_MAX);
+        let diffuse = radiance * (cos / std::f32::consts::PI * scale);
+        let specular = if settings.effects.specular {
+            brdf::eval_specular(p, wo_l, wi_l) * radiance * scale
+        } else {
+            Vec3::ZERO
+        };
+        (diffuse, specular)
+    };
+
+    let (mut diffuse, mut specular) = (Vec3::ZERO, Vec3::ZERO);
+    let n = settings.spp.max(1);
+    for k in 0..n {
+        // Light sample, stratified in its first dimension.
+        let (r0, r1) = rng.next_2d();
+        let ls = light.sample(((k as f32 + r0) / n as f32, r1));
+        let wi_l = frame.to_local(ls.dir);
+        if ls.pdf > 0.0 && wi_l.z > 0.0 && visible(ls.dir) {
+            let w = ls.pdf / (ls.pdf + bsdf_pdf(wi_l));
+            let (d, sp) = contribution(wi_l, ls.radiance, w / ls.pdf);
+            diffuse += d;
+            specular += sp;
+        }
+        // BSDF sample.
+        let lobe = rng.next_f32();
+        let u = rng.next_2d();
+        let wi_l = if lobe < ps { brdf::sample_ggx_vndf(wo_l, alpha, u) } else { brdf::sample_cosine(u) };
+        if wi_l.z > 0.0 {
+            let pdf_b = bsdf_pdf(wi_l);
+            let wi = frame.to_world(wi_l);
+            if pdf_b > 0.0 && visible(wi) {
+                let w = pdf_b / (pdf_b + light.pdf(wi));
+                let (d, sp) = contribution(wi_l, light.radiance(wi), w / pdf_b);
+                diffuse += d;
+                specular += sp;
+            }
+        }
+    }
+    (diffuse / n as f32, specular / n as f32)
+}
+
+/// Shade every covered pixel. `stream_offset` separates the random streams of different views.
+pub fn shade(gbuf: &GBuffer, params: &[Option<SurfaceParams>], light: &LightSampler, bvh: &Bvh, settings: &McSettings, stream_offset: u64) -> McBuffers {
+    let (diffuse, specular): (Vec<Vec3>, Vec<Vec3>) = gbuf
+        .surfels
+        .par_iter()
+        .zip(params.par_iter())
+        .enumerate()
+        .map(|(i, (s, p))| match (s, p) {
+            (Some(s), Some(p)) => {
+                let mut rng = Sampler::new(settings.seed, stream_offset + i as u64);
+                let wo = (gbuf.origin - s.position).normalize();
+                shade_point(s, wo, p, light, bvh, settings, &mut rng)
+            }
+            _ => (Vec3::ZERO, Vec3::ZERO),
+        })
+        .unzip();
+    McBuffers { diffuse, specular }
+}

@@ -2,7 +2,9 @@
 
 pub mod camera;
 pub mod dataset;
+pub mod default_scene;
 pub mod probe;
 pub mod spec;
+pub mod synthetic;
 
 pub use camera::Camera;

@@ -1,0 +1,116 @@
+//! Rendering one view: G-buffer (optionally supersampled) → per-pixel materials → shading →
+//! RGBA with coverage alpha, resolved by a box filter like the dataset's renders.
+
+use std::sync::OnceLock;
+
+use glam::Vec3;
+use serde::{Deserialize, Serialize};
+
+use crate::geometry::bvh::Bvh;
+use crate::geometry::Mesh;
+use crate::image::Image;
+use crate::light::brdf_lut::BrdfLut;
+use crate::light::prefilter::SplitSumLight;
+use crate::light::sampler::LightSampler;
+use crate::light::CubeMap;
+use crate::render::effects::Effects;
+use crate::render::gbuffer::GBuffer;
+use crate::render::{montecarlo, splitsum};
+use crate::scene::Camera;
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum ShadingMode {
+    SplitSum,
+    MonteCarlo,
+}
+
+#[derive(Clone, Copy, Debug)]
+pub struct RenderSettings {
+    pub mode: ShadingMode,
+    /// Samples per pixel (per strategy) in Monte Carlo mode.
+    pub spp: u32,
+    /// Primary rays per pixel side (s² per pixel), resolved with a box filter.
+    pub supersample: usize,
+    pub seed: u64,
+    pub effects: Effects,
+}
+
+impl Default for RenderSettings {
+    fn default() -> Self {
+        RenderSettings { mode: ShadingMode::MonteCarlo, spp: 16, supersample: 2, seed: 0, effects: Effects::ALL }
+    }
+}
+
+/// An environment light with the derived data each shading mode needs, built on first use only.
+pub struct PreparedLight {
+    pub cube: CubeMap,
+    split_sum: OnceLock<(SplitSumLight, BrdfLut)>,
+    sampler: OnceLock<LightSampler>,
+}
+
+impl PreparedLight {
+    pub fn new(cube: CubeMap) -> Self {
+        PreparedLight { cube, split_sum: OnceLock::new(), sampler: OnceLock::new() }
+    }
+
+    pub fn split_sum(&self) -> &(SplitSumLight, BrdfLut) {
+        self.split_sum.get_or_init(|| (SplitSumLight::new(&self.cube), BrdfLut::default_table()))
+    }
+
+    pub fn sampler(&self) -> &LightSampler {
+        self.sampler.get_or_init(|| LightSampler::new(&self.cube))
+    }
+}
+
+/// Scene scale for ray offsets.
+pub fn ray_epsilon(mesh: &Mesh) -> f32 {
+    let (lo, hi) = mesh
+        .positions
+        .iter()
+        .fold((Vec3::splat(f32::MAX), Vec3::splat(f32::MIN)), |(lo, hi), p| (lo.min(*p), hi.max(*p)));
+    1e-4 * (hi - lo).length().max(1e-3)
+}
+
+/// Shade a traced G-buffer: linear radiance per G-buffer pixel.
+pub fn shade_gbuffer(gbuf: &GBuffer, mesh: &Mesh, bvh: &Bvh, light: &PreparedLight, settings: &RenderSettings, stream_offset: u64) -> Vec<Vec3> {
+    let params = gbuf.material_params(mesh);
+    match settings.mode {
+        ShadingMode::SplitSum => {
+            let (ss, lut) = light.split_sum();
+            splitsum::shade(gbuf, &params, ss, lut, settings.effects)
+        }
+        ShadingMode::MonteCarlo => {
+            let mc = montecarlo::McSettings { spp: settings.spp, seed: settings.seed, effects: settings.effects, ray_epsilon: ray_epsilon(mesh) };
+            montecarlo::shade(gbuf, &params, light.sampler(), bvh, &mc, stream_offset).radiance(&params)
+        }
+    }
+}
+
+/// Render one view to a linear RGBA image with straight (un-premultiplied) colour and coverage
+/// alpha, the convention of the dataset's `rgba.png` (before its sRGB encoding).
+pub fn render_view(mesh: &Mesh, bvh: &Bvh, light: &PreparedLight, camera: &Camera, settings: &RenderSettings) -> Image {
+    let s = settings.supersample.max(1);
+    let fine = camera.resized(camera.width * s, camera.height * s);
+    let gbuf = GBuffer::trace(mesh, bvh, &fine);
+    let radiance = shade_gbuffer(&gbuf, mesh, bvh, light, settings, 0);
+    let mut premultiplied = Image::new(fine.width, fine.height, 4);
+    for (i, (c, surfel)) in radiance.iter().zip(&gbuf.surfels).enumerate() {
+        if surfel.is_some() {
+            premultiplied.data[4 * i..4 * i + 4].copy_from_slice(&[c.x, c.y, c.z, 1.0]);
+        }
+    }
+    unpremultiply(premultiplied.downsample_box(s))
+}
+
+/// Divide colour by alpha where alpha > 0 (straight alpha, as the dataset stores it).
+pub fn unpremultiply(mut img: Image) -> Image {
+    for p in img.data.chunks_exact_mut(4) {
+        if p[3] > 0.0 {
+            for c in &mut p[..3] {
+                *c /= p[3];
+            }
+        }
+    }
+    img
+}
