@@ -31,6 +31,8 @@ pub struct McBuffers {
     pub diffuse: Vec<Vec3>,
     /// Specular radiance.
     pub specular: Vec<Vec3>,
+    /// Shadow rays traced (zero when shadows are off: an effect that is off costs nothing).
+    pub shadow_rays: u64,
 }
 
 impl McBuffers {
@@ -66,7 +68,8 @@ fn specular_probability(p: &SurfaceParams, nov: f32, effects: Effects) -> f32 {
 }
 
 /// Diffuse (demodulated) and specular estimates for one surfel, `spp` samples of each strategy.
-pub fn shade_point(s: &Surfel, wo: Vec3, p: &SurfaceParams, light: &LightSampler, bvh: &Bvh, settings: &McSettings, rng: &mut Sampler) -> (Vec3, Vec3) {
+/// Returns (diffuse, specular, shadow rays traced).
+pub fn shade_point(s: &Surfel, wo: Vec3, p: &SurfaceParams, light: &LightSampler, bvh: &Bvh, settings: &McSettings, rng: &mut Sampler) -> (Vec3, Vec3, u64) {
     let frame = Frame::from_normal(s.normal);
     let wo_l = frame.to_local(wo);
     let nov = wo_l.z.clamp(COS_MIN, COS_MAX);
@@ -80,12 +83,17 @@ pub fn shade_point(s: &Surfel, wo: Vec3, p: &SurfaceParams, light: &LightSampler
         pdf
     };
     let origin = s.position + s.geo_normal * settings.ray_epsilon;
+    let rays = std::cell::Cell::new(0u64);
     let visible = |wi: Vec3| -> bool {
         // Light arriving from behind the geometric surface is blocked by the surface itself.
         if wi.dot(s.geo_normal) <= 0.0 {
             return false;
         }
-        !settings.effects.shadows || !bvh.any_hit(origin, wi, settings.ray_epsilon, f32::INFINITY)
+        if !settings.effects.shadows {
+            return true;
+        }
+        rays.set(rays.get() + 1);
+        !bvh.any_hit(origin, wi, settings.ray_epsilon, f32::INFINITY)
     };
     // Radiance contribution of direction wi (local wi_l) with MIS weight / pdf already folded in `scale`.
     let contribution = |wi_l: Vec3, radiance: Vec3, scale: f32| -> (Vec3, Vec3) {
@@ -127,12 +135,12 @@ pub fn shade_point(s: &Surfel, wo: Vec3, p: &SurfaceParams, light: &LightSampler
             }
         }
     }
-    (diffuse / n as f32, specular / n as f32)
+    (diffuse / n as f32, specular / n as f32, rays.get())
 }
 
 /// Shade every covered pixel. `stream_offset` separates the random streams of different views.
 pub fn shade(gbuf: &GBuffer, params: &[Option<SurfaceParams>], light: &LightSampler, bvh: &Bvh, settings: &McSettings, stream_offset: u64) -> McBuffers {
-    let (diffuse, specular): (Vec<Vec3>, Vec<Vec3>) = gbuf
+    let shaded: Vec<(Vec3, Vec3, u64)> = gbuf
         .surfels
         .par_iter()
         .zip(params.par_iter())
@@ -143,8 +151,12 @@ pub fn shade(gbuf: &GBuffer, params: &[Option<SurfaceParams>], light: &LightSamp
                 let wo = (gbuf.origin - s.position).normalize();
                 shade_point(s, wo, p, light, bvh, settings, &mut rng)
             }
-            _ => (Vec3::ZERO, Vec3::ZERO),
+            _ => (Vec3::ZERO, Vec3::ZERO, 0),
         })
-        .unzip();
-    McBuffers { diffuse, specular }
+        .collect();
+    McBuffers {
+        diffuse: shaded.iter().map(|s| s.0).collect(),
+        specular: shaded.iter().map(|s| s.1).collect(),
+        shadow_rays: shaded.iter().map(|s| s.2).sum(),
+    }
 }
