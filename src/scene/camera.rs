@@ -14,6 +14,15 @@ pub struct Camera {
 }
 
 impl Camera {
+    /// A camera at `eye` looking at `target` with `up` roughly up (builds the OpenGL c2w frame).
+    pub fn look_at(eye: Vec3, target: Vec3, up: Vec3, fov_x: f32, width: usize, height: usize) -> Camera {
+        let back = (eye - target).normalize();
+        let right = up.cross(back).normalize();
+        let true_up = back.cross(right);
+        let c2w = Mat4::from_cols(right.extend(0.0), true_up.extend(0.0), back.extend(0.0), eye.extend(1.0));
+        Camera { c2w, fov_x, width, height }
+    }
+
     /// Focal length in pixels (square pixels, principal point at the image centre).
     pub fn focal(&self) -> f32 {
         0.5 * self.width as f32 / (0.5 * self.fov_x).tan()
@@ -85,8 +94,8 @@ mod tests {
 
     #[test]
     fn ray_and_projection_are_inverse() {
-        let c2w = Mat4::look_at_rh(Vec3::new(2.0, -3.0, 1.5), Vec3::ZERO, Vec3::Z).inverse();
-        let cam = Camera { c2w, fov_x: 0.69, width: 256, height: 256 };
+        let cam = Camera::look_at(Vec3::new(2.0, -3.0, 1.5), Vec3::ZERO, Vec3::Z, 0.69, 256, 256);
+        assert!((cam.forward() - (-cam.origin()).normalize()).length() < 1e-5);
         let d = cam.ray_dir(37.5, 200.25);
         let (p, depth) = cam.project(cam.origin() + 3.0 * d);
         assert!((p - Vec2::new(37.5, 200.25)).length() < 1e-3 && depth > 0.0);
