@@ -6,3 +6,6 @@ pub mod probe;
 pub mod spec;
 
 pub use camera::Camera;
+pub use dataset::{Dataset, Layout, Split, View, ViewMetadata};
+pub use probe::Probe;
+pub use spec::{crate_dir, shared_dir, EffectMode, Effects, SceneSpec};
