@@ -78,6 +78,24 @@ impl Image {
         out
     }
 
+    /// Number of colour channels: 1 for grey / grey+alpha, 3 for RGB / RGBA.
+    pub fn colour_channels(&self) -> usize {
+        match self.channels {
+            1 | 2 => 1,
+            c => c.min(3),
+        }
+    }
+
+    /// sRGB-encoded colour to linear (exact curve); alpha is left as is.
+    pub fn srgb_to_linear(&self) -> Image {
+        self.map_channels(self.colour_channels(), crate::color::srgb_to_linear)
+    }
+
+    /// Linear colour to sRGB encoding (exact curve, not clipped above 1); alpha is left as is.
+    pub fn linear_to_srgb(&self) -> Image {
+        self.map_channels(self.colour_channels(), crate::color::linear_to_srgb)
+    }
+
     /// Bilinear lookup at continuous pixel coordinates (pixel centres at +0.5), clamped to the edge.
     pub fn bilinear(&self, x: f32, y: f32, out: &mut [f32]) {
         let fx = (x - 0.5).clamp(0.0, (self.width - 1) as f32);

@@ -8,3 +8,6 @@ pub mod spec;
 pub mod synthetic;
 
 pub use camera::Camera;
+pub use dataset::{Dataset, Layout, Split, View, ViewMetadata};
+pub use probe::Probe;
+pub use spec::{crate_dir, shared_dir, EffectMode, Effects, SceneSpec};

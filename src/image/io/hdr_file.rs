@@ -1,0 +1,28 @@
+//! Radiance RGBE (.hdr), the format of NeRFactor's light probes.
+
+use std::fs::File;
+use std::io::BufReader;
+use std::path::Path;
+
+use anyhow::{bail, Context, Result};
+use image::codecs::hdr::HdrDecoder;
+use image::DynamicImage;
+
+use super::require_file;
+use crate::image::Image;
+
+/// Read a Radiance .hdr file as linear RGB (3 channels).
+pub fn read_hdr(path: &Path) -> Result<Image> {
+    require_file(path, "Radiance HDR image")?;
+    let file = File::open(path).with_context(|| format!("cannot open HDR image {}", path.display()))?;
+    let decoder = HdrDecoder::new(BufReader::new(file))
+        .with_context(|| format!("cannot read {} as a Radiance .hdr file", path.display()))?;
+    let decoded = DynamicImage::from_decoder(decoder)
+        .with_context(|| format!("cannot decode Radiance HDR image {}", path.display()))?;
+    let (width, height) = (decoded.width() as usize, decoded.height() as usize);
+    let data = match decoded {
+        DynamicImage::ImageRgb32F(b) => b.into_raw(),
+        other => bail!("unexpected pixel layout {:?} in {}", other.color(), path.display()),
+    };
+    Ok(Image { width, height, channels: 3, data })
+}
