@@ -4,5 +4,6 @@ pub mod bvh;
 pub mod gltf_io;
 pub mod mesh;
 pub mod obj;
+pub mod texture_file;
 
 pub use mesh::{Mesh, Part};
