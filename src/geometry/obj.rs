@@ -41,8 +41,23 @@ struct ObjGeometry {
 
 fn read_obj_geometry(path: &Path) -> Result<ObjGeometry> {
     let options = tobj::LoadOptions { single_index: true, triangulate: true, ignore_points: true, ignore_lines: true, ..Default::default() };
-    let (models, materials) =
-        tobj::load_obj(path, &options).with_context(|| format!("reading OBJ file {}", path.display()))?;
+    let text = std::fs::read_to_string(path).with_context(|| format!("reading OBJ file {}", path.display()))?;
+    let text = match repair_vt_numbered_like_v(&text) {
+        Some(fixed) => {
+            eprintln!(
+                "note: {}: face texture indices repeat the vertex indices although some objects have no `vt`; \
+                 re-indexed each object's `vt` block to its `v` block",
+                path.display()
+            );
+            fixed
+        }
+        None => text,
+    };
+    let dir = path.parent().unwrap_or(Path::new(".")).to_path_buf();
+    let (models, materials) = tobj::load_obj_buf(&mut std::io::BufReader::new(text.as_bytes()), &options, |mtl| {
+        tobj::load_mtl(dir.join(mtl))
+    })
+    .with_context(|| format!("reading OBJ file {}", path.display()))?;
     // A missing or broken MTL is not fatal for geometry; parts fall back to the default material.
     let mtl = match materials {
         Ok(m) => m,
@@ -99,6 +114,82 @@ fn read_obj_geometry(path: &Path) -> Result<ObjGeometry> {
         bail!("OBJ file {} contains no faces", path.display());
     }
     Ok(ObjGeometry { mesh, part_mtl, mtl })
+}
+
+/// Some exporters (the hotdog's `gt/hotdog.obj` among them) write `f a/a/a` — texture index =
+/// vertex index — while objects without UVs write no `vt` lines, so every later object's texture
+/// indices point into the wrong `vt` block (or past the end). Each object's `vt` block is in the
+/// order of its `v` block, so the right index is the vertex's offset within its object's `v` block
+/// plus that object's first `vt`. Returns the re-indexed text when the file has exactly that shape:
+/// fewer `vt` than `v`, every face corner's texture index equal to its vertex index, and every
+/// object that faces take UVs from having as many `vt` as `v`. Otherwise `None` (file untouched).
+fn repair_vt_numbered_like_v(text: &str) -> Option<String> {
+    // (first v, v count, first vt, vt count) per object, 1-based global indices.
+    let mut blocks: Vec<[usize; 4]> = vec![[1, 0, 1, 0]];
+    let (mut nv, mut nvt) = (0usize, 0usize);
+    let mut corners_with_vt = 0usize;
+    for line in text.lines() {
+        let mut w = line.split_whitespace();
+        match w.next() {
+            Some("o") => blocks.push([nv + 1, 0, nvt + 1, 0]),
+            Some("v") => {
+                nv += 1;
+                blocks.last_mut()?[1] += 1;
+            }
+            Some("vt") => {
+                nvt += 1;
+                blocks.last_mut()?[3] += 1;
+            }
+            Some("f") => {
+                for corner in w {
+                    let mut it = corner.split('/');
+                    let (v, vt) = (it.next()?, it.next().unwrap_or(""));
+                    if vt.is_empty() {
+                        continue;
+                    }
+                    if v != vt || v.starts_with('-') {
+                        return None;
+                    }
+                    corners_with_vt += 1;
+                }
+            }
+            _ => {}
+        }
+    }
+    if corners_with_vt == 0 || nvt >= nv {
+        return None;
+    }
+    let block_of = |v: usize| blocks.iter().rev().find(|b| b[1] > 0 && v >= b[0] && v < b[0] + b[1]);
+    let mut out = String::with_capacity(text.len());
+    for line in text.lines() {
+        if let Some(rest) = line.strip_prefix("f ") {
+            out.push('f');
+            for corner in rest.split_whitespace() {
+                let parts: Vec<&str> = corner.split('/').collect();
+                out.push(' ');
+                if parts.len() >= 2 && !parts[1].is_empty() {
+                    let v: usize = parts[0].parse().ok()?;
+                    let b = block_of(v)?;
+                    if b[3] != b[1] {
+                        return None;
+                    }
+                    let vt = b[2] + (v - b[0]);
+                    out.push_str(&format!("{}/{}", parts[0], vt));
+                    if parts.len() == 3 {
+                        out.push('/');
+                        out.push_str(parts[2]);
+                    }
+                } else {
+                    out.push_str(corner);
+                }
+            }
+            out.push('\n');
+        } else {
+            out.push_str(line);
+            out.push('\n');
+        }
+    }
+    Some(out)
 }
 
 fn parse_unknown(m: &tobj::Material, key: &str, path: &Path) -> Result<Option<f32>> {
@@ -398,6 +489,25 @@ mod tests {
         assert!((p.kd - Vec3::splat(0.5)).abs().max_element() < 0.01, "{:?}", p.kd);
         let p = b.eval(Vec2::new(0.25, 0.75));
         assert!((p.kd - Vec3::X).abs().max_element() < 1e-5, "{:?}", p.kd);
+        std::fs::remove_dir_all(&dir).ok();
+    }
+
+    #[test]
+    fn texture_indices_numbered_like_vertex_indices_are_repaired() {
+        // Object a has no vt; object b's faces say 4/4 although its first vt is vt 1.
+        let text = "o a\nv 0 0 0\nv 1 0 0\nv 0 1 0\nf 1//1 2//2 3//3\n\
+                    o b\nv 0 0 1\nv 1 0 1\nv 0 1 1\nvt 0.1 0.2\nvt 0.3 0.4\nvt 0.5 0.6\nf 4/4/4 5/5/5 6/6/6\n";
+        let fixed = repair_vt_numbered_like_v(text).unwrap();
+        assert!(fixed.contains("f 4/1/4 5/2/5 6/3/6"), "{fixed}");
+        assert!(fixed.contains("f 1//1 2//2 3//3"));
+        // A consistent file is left alone.
+        let ok = "o b\nv 0 0 1\nv 1 0 1\nv 0 1 1\nvt 0 0\nvt 1 0\nvt 0 1\nf 1/1 2/2 3/3\n";
+        assert!(repair_vt_numbered_like_v(ok).is_none());
+        let dir = tmp_dir("vt");
+        std::fs::write(dir.join("q.obj"), text).unwrap();
+        let mesh = load_obj(dir.join("q.obj")).unwrap();
+        assert!(!mesh.parts[0].has_uv && mesh.parts[1].has_uv);
+        assert_eq!(mesh.uvs[mesh.triangles[1][0] as usize], Vec2::new(0.1, 0.2));
         std::fs::remove_dir_all(&dir).ok();
     }
 
