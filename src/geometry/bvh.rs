@@ -1,0 +1,204 @@
+//! Ray queries against a mesh through an obvhs compressed wide BVH (CWBVH, 8-wide, SIMD node tests).
+//!
+//! obvhs reports leaf primitives as indices into its own `primitive_indices`; we store the
+//! triangles already permuted into that order (so the hot loop reads memory linearly) together
+//! with their index in the mesh's triangle list, which is what [`Hit::triangle`] returns.
+
+use std::time::Duration;
+
+use glam::{UVec2, Vec2, Vec3, Vec3A};
+use obvhs::cwbvh::builder::build_cwbvh_from_tris;
+use obvhs::cwbvh::CwBvh;
+use obvhs::ray::Ray;
+use obvhs::triangle::Triangle;
+use obvhs::BvhBuildParams;
+
+use super::Mesh;
+
+/// A ray/triangle intersection.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Hit {
+    /// Index into the mesh's triangle list.
+    pub triangle: u32,
+    /// Distance along the ray direction (in units of |dir|).
+    pub t: f32,
+    /// Barycentrics (b1, b2) of the hit; b0 = 1 − b1 − b2.
+    pub bary: Vec2,
+}
+
+/// A triangle in the form the intersection test wants: one vertex and two edges.
+#[derive(Clone, Copy, Debug)]
+struct PackedTriangle {
+    v0: Vec3A,
+    e1: Vec3A,
+    e2: Vec3A,
+}
+
+/// Möller–Trumbore ray/triangle test for the triangle (p0, p1, p2). Returns (t, b1, b2) for a hit
+/// with t in [tmin, tmax]. Zero-area (or non-finite) triangles never hit: their determinant is 0
+/// or the barycentric test fails, so no NaN can escape.
+#[inline(always)]
+fn intersect_packed(tri: &PackedTriangle, origin: Vec3A, dir: Vec3A, tmin: f32, tmax: f32) -> Option<(f32, f32, f32)> {
+    let p = dir.cross(tri.e2);
+    let det = tri.e1.dot(p);
+    // `!(det != 0)` also rejects NaN.
+    if det == 0.0 || det.is_nan() {
+        return None;
+    }
+    let inv_det = 1.0 / det;
+    let s = origin - tri.v0;
+    let b1 = s.dot(p) * inv_det;
+    if !(0.0..=1.0).contains(&b1) {
+        return None;
+    }
+    let q = s.cross(tri.e1);
+    let b2 = dir.dot(q) * inv_det;
+    if !(b2 >= 0.0 && b1 + b2 <= 1.0) {
+        return None;
+    }
+    let t = tri.e2.dot(q) * inv_det;
+    if t >= tmin && t <= tmax && t.is_finite() {
+        Some((t, b1, b2))
+    } else {
+        None
+    }
+}
+
+/// The same test on three points, for brute-force references and one-off queries.
+pub fn intersect_triangle(p: [Vec3; 3], origin: Vec3, dir: Vec3, tmin: f32, tmax: f32) -> Option<(f32, Vec2)> {
+    let tri = PackedTriangle { v0: p[0].into(), e1: (p[1] - p[0]).into(), e2: (p[2] - p[0]).into() };
+    intersect_packed(&tri, origin.into(), dir.into(), tmin, tmax).map(|(t, b1, b2)| (t, Vec2::new(b1, b2)))
+}
+
+/// obvhs picks a node's near slab by `dir < 0` but inverts ±0 by its sign, so a −0.0 component
+/// (e.g. from negating +z) makes every box test miss. Adding +0.0 turns −0.0 into +0.0.
+#[inline(always)]
+fn positive_zeros(dir: Vec3) -> Vec3A {
+    Vec3A::from(dir) + Vec3A::ZERO
+}
+
+/// A BVH over a mesh's triangles. Degenerate (zero-area or non-finite) triangles are left out:
+/// a ray can never hit them, and leaving them out keeps NaN bounds away from the builder.
+pub struct Bvh {
+    cwbvh: Option<CwBvh>,
+    /// Triangles in obvhs' primitive order.
+    triangles: Vec<PackedTriangle>,
+    /// Mesh triangle index of each entry of `triangles`.
+    triangle_ids: Vec<u32>,
+}
+
+impl Bvh {
+    /// Build with obvhs' "medium" preset (PLOC + reinsertion, no spatial splits); see
+    /// examples/bench_rays.rs for the preset comparison on the hotdog.
+    pub fn build(mesh: &Mesh) -> Bvh {
+        Bvh::build_with(mesh, BvhBuildParams::medium_build())
+    }
+
+    pub fn build_with(mesh: &Mesh, params: BvhBuildParams) -> Bvh {
+        let mut tris = Vec::with_capacity(mesh.triangles.len());
+        let mut ids = Vec::with_capacity(mesh.triangles.len());
+        for t in 0..mesh.triangles.len() {
+            let [p0, p1, p2] = mesh.triangle_positions(t);
+            let area2 = (p1 - p0).cross(p2 - p0).length_squared();
+            if area2 > 0.0 && area2.is_finite() && p0.is_finite() && p1.is_finite() && p2.is_finite() {
+                tris.push(Triangle { v0: p0.into(), v1: p1.into(), v2: p2.into() });
+                ids.push(t as u32);
+            }
+        }
+        if tris.is_empty() {
+            return Bvh { cwbvh: None, triangles: Vec::new(), triangle_ids: Vec::new() };
+        }
+        let cwbvh = build_cwbvh_from_tris(&tris, params, &mut Duration::default());
+        let triangles = cwbvh
+            .primitive_indices
+            .iter()
+            .map(|&i| {
+                let t = &tris[i as usize];
+                PackedTriangle { v0: t.v0, e1: t.v1 - t.v0, e2: t.v2 - t.v0 }
+            })
+            .collect();
+        let triangle_ids = cwbvh.primitive_indices.iter().map(|&i| ids[i as usize]).collect();
+        Bvh { cwbvh: Some(cwbvh), triangles, triangle_ids }
+    }
+
+    /// Number of (non-degenerate) triangles referenced by the leaves.
+    pub fn primitive_count(&self) -> usize {
+        self.triangles.len()
+    }
+
+    /// The nearest hit with t in [tmin, tmax] along `origin + t·dir` (dir need not be unit).
+    pub fn closest_hit(&self, origin: Vec3, dir: Vec3, tmin: f32, tmax: f32) -> Option<Hit> {
+        let bvh = self.cwbvh.as_ref()?;
+        if !(origin.is_finite() && dir.is_finite()) || dir == Vec3::ZERO {
+            return None;
+        }
+        let (o, d) = (Vec3A::from(origin), positive_zeros(dir));
+        let mut ray = Ray::new(o, d, tmin, tmax);
+        let mut best: Option<(u32, f32, f32, f32)> = None;
+        let mut state = bvh.new_traversal(ray.direction);
+        let mut node;
+        obvhs::traverse!(bvh, node, state, node.intersect_ray(&ray, state.oct_inv4), {
+            let k = state.primitive_id as usize;
+            if let Some((t, b1, b2)) = intersect_packed(&self.triangles[k], o, d, tmin, ray.tmax) {
+                best = Some((k as u32, t, b1, b2));
+                ray.tmax = t; // shrink so farther boxes and triangles are culled
+            }
+        });
+        best.map(|(k, t, b1, b2)| Hit { triangle: self.triangle_ids[k as usize], t, bary: Vec2::new(b1, b2) })
+    }
+
+    /// Whether anything lies on the segment t in [tmin, tmax] (occlusion; stops at the first hit).
+    pub fn any_hit(&self, origin: Vec3, dir: Vec3, tmin: f32, tmax: f32) -> bool {
+        let Some(bvh) = self.cwbvh.as_ref() else { return false };
+        if !(origin.is_finite() && dir.is_finite()) || dir == Vec3::ZERO {
+            return false;
+        }
+        let (o, d) = (Vec3A::from(origin), positive_zeros(dir));
+        let ray = Ray::new(o, d, tmin, tmax);
+        let mut state = bvh.new_traversal(ray.direction);
+        let mut node;
+        let mut hit = false;
+        obvhs::traverse!(bvh, node, state, node.intersect_ray(&ray, state.oct_inv4), {
+            if intersect_packed(&self.triangles[state.primitive_id as usize], o, d, tmin, tmax).is_some() {
+                hit = true;
+                break;
+            }
+        });
+        hit
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn hit_point_reproduces_barycentrics() {
+        let p = [Vec3::new(0.0, 0.0, 0.0), Vec3::new(2.0, 0.0, 0.0), Vec3::new(0.0, 3.0, 0.0)];
+        let o = Vec3::new(0.5, 0.75, 5.0);
+        let (t, b) = intersect_triangle(p, o, -Vec3::Z, 0.0, f32::INFINITY).unwrap();
+        assert!((t - 5.0).abs() < 1e-6);
+        let x = (1.0 - b.x - b.y) * p[0] + b.x * p[1] + b.y * p[2];
+        assert!((x - Vec3::new(0.5, 0.75, 0.0)).length() < 1e-6);
+        // Outside the t range and outside the triangle.
+        assert!(intersect_triangle(p, o, -Vec3::Z, 0.0, 4.9).is_none());
+        assert!(intersect_triangle(p, Vec3::new(1.9, 2.9, 5.0), -Vec3::Z, 0.0, 10.0).is_none());
+        // Degenerate triangles never hit.
+        let line = [Vec3::ZERO, Vec3::X, 2.0 * Vec3::X];
+        assert!(intersect_triangle(line, Vec3::new(0.5, 0.0, 1.0), -Vec3::Z, 0.0, 10.0).is_none());
+        let point = [Vec3::ONE; 3];
+        assert!(intersect_triangle(point, Vec3::new(1.0, 1.0, 3.0), -Vec3::Z, 0.0, 10.0).is_none());
+    }
+
+    #[test]
+    fn empty_and_all_degenerate_meshes_never_hit() {
+        let bvh = Bvh::build(&Mesh::default());
+        assert!(bvh.closest_hit(Vec3::ZERO, Vec3::Z, 0.0, 1e9).is_none());
+        let mut mesh = Mesh::default();
+        mesh.positions = vec![Vec3::ZERO, Vec3::X, 2.0 * Vec3::X];
+        mesh.triangles = vec![[0, 1, 2], [0, 0, 0]];
+        let bvh = Bvh::build(&mesh);
+        assert_eq!(bvh.primitive_count(), 0);
+        assert!(!bvh.any_hit(Vec3::new(0.5, 0.0, 1.0), -Vec3::Z, 0.0, 10.0));
+    }
+}

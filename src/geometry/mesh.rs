@@ -26,3 +26,87 @@ pub struct Mesh {
     pub parts: Vec<Part>,
     pub materials: Vec<PartMaterial>,
 }
+
+impl Mesh {
+    /// Axis-aligned bounds (min, max) of all vertex positions; `None` for an empty mesh.
+    pub fn bounds(&self) -> Option<(Vec3, Vec3)> {
+        let first = *self.positions.first()?;
+        Some(self.positions.iter().fold((first, first), |(lo, hi), p| (lo.min(*p), hi.max(*p))))
+    }
+
+    /// The three corner positions of triangle `t`.
+    pub fn triangle_positions(&self, t: usize) -> [Vec3; 3] {
+        let [a, b, c] = self.triangles[t];
+        [self.positions[a as usize], self.positions[b as usize], self.positions[c as usize]]
+    }
+
+    /// Unnormalised face normal (cross product of the edges; its length is twice the area).
+    pub fn face_normal_scaled(&self, t: usize) -> Vec3 {
+        let [p0, p1, p2] = self.triangle_positions(t);
+        (p1 - p0).cross(p2 - p0)
+    }
+
+    /// Area-weighted vertex normals over the given triangles: each face adds its cross product
+    /// (|cross| = 2·area), so large faces dominate and slivers barely count. Vertices that no
+    /// non-degenerate face touches get +z so that normals stay unit length and finite.
+    pub fn area_weighted_normals(positions: &[Vec3], triangles: &[[u32; 3]]) -> Vec<Vec3> {
+        let mut acc = vec![Vec3::ZERO; positions.len()];
+        for &[a, b, c] in triangles {
+            let (p0, p1, p2) = (positions[a as usize], positions[b as usize], positions[c as usize]);
+            let n = (p1 - p0).cross(p2 - p0);
+            if !n.is_finite() {
+                continue;
+            }
+            for i in [a, b, c] {
+                acc[i as usize] += n;
+            }
+        }
+        acc.into_iter().map(|n| n.try_normalize().unwrap_or(Vec3::Z)).collect()
+    }
+
+    /// Recompute all vertex normals from the faces (area-weighted).
+    pub fn recompute_normals(&mut self) {
+        self.normals = Mesh::area_weighted_normals(&self.positions, &self.triangles);
+    }
+
+    /// Number of triangles of each part.
+    pub fn part_triangle_counts(&self) -> Vec<usize> {
+        let mut counts = vec![0; self.parts.len()];
+        for &p in &self.triangle_part {
+            counts[p as usize] += 1;
+        }
+        counts
+    }
+
+    /// The material of triangle `t` (through its part).
+    pub fn triangle_material(&self, t: usize) -> &PartMaterial {
+        &self.materials[self.parts[self.triangle_part[t] as usize].material]
+    }
+
+    /// Check the invariants other modules rely on (equal attribute lengths, indices in range,
+    /// part and material indices valid). Returns a description of the first violation.
+    pub fn validate(&self) -> Result<(), String> {
+        let n = self.positions.len();
+        if self.normals.len() != n || self.uvs.len() != n {
+            return Err(format!(
+                "attribute lengths differ: {} positions, {} normals, {} uvs",
+                n,
+                self.normals.len(),
+                self.uvs.len()
+            ));
+        }
+        if self.triangle_part.len() != self.triangles.len() {
+            return Err(format!("{} triangles but {} triangle parts", self.triangles.len(), self.triangle_part.len()));
+        }
+        if let Some((t, tri)) = self.triangles.iter().enumerate().find(|(_, tri)| tri.iter().any(|&i| i as usize >= n)) {
+            return Err(format!("triangle {t} {tri:?} indexes past {n} vertices"));
+        }
+        if let Some(p) = self.triangle_part.iter().find(|&&p| p as usize >= self.parts.len()) {
+            return Err(format!("part index {p} out of range ({} parts)", self.parts.len()));
+        }
+        if let Some(part) = self.parts.iter().find(|p| p.material >= self.materials.len()) {
+            return Err(format!("part {} uses material {} of {}", part.name, part.material, self.materials.len()));
+        }
+        Ok(())
+    }
+}

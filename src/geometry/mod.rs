@@ -6,5 +6,6 @@ pub mod gltf_io;
 pub mod mesh;
 pub mod obj;
 pub mod primitives;
+pub mod texture_file;
 
 pub use mesh::{Mesh, Part};

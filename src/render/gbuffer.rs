@@ -28,3 +28,93 @@ pub struct GBuffer {
     pub origin: Vec3,
     pub surfels: Vec<Option<Surfel>>,
 }
+
+use rayon::prelude::*;
+
+use crate::geometry::bvh::Bvh;
+use crate::geometry::Mesh;
+use crate::image::Image;
+use crate::material::SurfaceParams;
+use crate::scene::camera::Camera;
+
+impl GBuffer {
+    /// Trace one primary ray per pixel through the pixel centre (supersample by tracing
+    /// `camera.resized(W·s, H·s)`), rows in parallel.
+    ///
+    /// Two-sided convention (as Cycles and the NeRFactor GT normals): when the ray sees a
+    /// triangle's back face, both the geometric and the interpolated shading normal are negated.
+    /// The shading normal is flipped with the face, not on its own, so it stays continuous across
+    /// a smooth surface even where it tilts away from the viewer near silhouettes.
+    pub fn trace(mesh: &Mesh, bvh: &Bvh, camera: &Camera) -> GBuffer {
+        let (width, height) = (camera.width, camera.height);
+        let origin = camera.origin();
+        let forward = camera.forward();
+        let mut surfels = vec![None; width * height];
+        surfels.par_chunks_mut(width.max(1)).enumerate().for_each(|(y, row)| {
+            for (x, out) in row.iter_mut().enumerate() {
+                let dir = camera.ray_dir(x as f32 + 0.5, y as f32 + 0.5);
+                *out = bvh.closest_hit(origin, dir, 0.0, f32::INFINITY).map(|hit| {
+                    surfel_at(mesh, hit.triangle, hit.bary, dir, origin, forward)
+                });
+            }
+        });
+        GBuffer { width, height, origin, surfels }
+    }
+
+    /// Per pixel: did the primary ray hit geometry.
+    pub fn mask(&self) -> Vec<bool> {
+        self.surfels.iter().map(Option::is_some).collect()
+    }
+
+    /// One channel: 1 where the ray hit, 0 elsewhere (average a supersampled one for coverage).
+    pub fn coverage_image(&self) -> Image {
+        let data = self.surfels.iter().map(|s| if s.is_some() { 1.0 } else { 0.0 }).collect();
+        Image { width: self.width, height: self.height, channels: 1, data }
+    }
+
+    /// One channel: planar depth along the view axis, 0 on the background (like NeRFactor-layout
+    /// `depth.exr`).
+    pub fn depth_image(&self) -> Image {
+        let data = self.surfels.iter().map(|s| s.map_or(0.0, |s| s.depth)).collect();
+        Image { width: self.width, height: self.height, channels: 1, data }
+    }
+
+    /// Three channels: world-space shading normal in [−1, 1] (not encoded), 0 on the background.
+    pub fn normal_image(&self) -> Image {
+        let mut img = Image::new(self.width, self.height, 3);
+        for (i, s) in self.surfels.iter().enumerate() {
+            if let Some(s) = s {
+                img.set_rgb(i, s.normal);
+            }
+        }
+        img
+    }
+
+    /// The BRDF inputs of every hit pixel from its triangle's part material at the surfel's UV.
+    pub fn material_params(&self, mesh: &Mesh) -> Vec<Option<SurfaceParams>> {
+        self.surfels
+            .par_iter()
+            .map(|s| s.map(|s| mesh.triangle_material(s.triangle as usize).eval(s.uv)))
+            .collect()
+    }
+}
+
+/// The surfel at barycentrics `bary` of triangle `tri`, seen along `dir` from `origin`.
+fn surfel_at(mesh: &Mesh, tri: u32, bary: glam::Vec2, dir: Vec3, origin: Vec3, forward: Vec3) -> Surfel {
+    let [i0, i1, i2] = mesh.triangles[tri as usize].map(|i| i as usize);
+    let w = Vec3::new(1.0 - bary.x - bary.y, bary.x, bary.y);
+    let interp3 = |a: &[Vec3]| w.x * a[i0] + w.y * a[i1] + w.z * a[i2];
+    let position = interp3(&mesh.positions);
+    let (p0, p1, p2) = (mesh.positions[i0], mesh.positions[i1], mesh.positions[i2]);
+    // The BVH never returns zero-area triangles, so the face normal is well defined.
+    let mut geo_normal = (p1 - p0).cross(p2 - p0).normalize_or(Vec3::Z);
+    // Normals that cancel out (opposite vertex normals) fall back to the face normal.
+    let mut normal = interp3(&mesh.normals).normalize_or(geo_normal);
+    if geo_normal.dot(dir) > 0.0 {
+        geo_normal = -geo_normal;
+        normal = -normal;
+    }
+    let uv = w.x * mesh.uvs[i0] + w.y * mesh.uvs[i1] + w.z * mesh.uvs[i2];
+    let depth = (position - origin).dot(forward);
+    Surfel { position, normal, geo_normal, uv, triangle: tri, bary, depth }
+}
