@@ -7,4 +7,7 @@ pub mod latlong;
 pub mod prefilter;
 pub mod sampler;
 
+pub use brdf_lut::BrdfLut;
 pub use cubemap::CubeMap;
+pub use prefilter::SplitSumLight;
+pub use sampler::{LightSample, LightSampler};
