@@ -38,7 +38,7 @@ fn hotdog() -> Option<Hotdog> {
 /// PSNR over white in sRGB on pixels with alpha > 0.8 in the target (the relighting protocol).
 fn protocol_psnr(render: &Image, target: &Image) -> f64 {
     let mask: Vec<bool> = (0..target.pixel_count()).map(|i| target.rgba(i).w > 0.8).collect();
-    psnr(&over_white(render), &over_white(target), &mask)
+    psnr(&over_white(render, render), &over_white(target, target), Some(&mask))
 }
 
 fn mirrored(img: &Image) -> Image {

@@ -9,7 +9,7 @@ use rayon::prelude::*;
 
 use crate::geometry::bvh::Bvh;
 use crate::light::sampler::LightSampler;
-use crate::material::brdf::{self, COS_MAX, COS_MIN};
+use crate::material::brdf::{self, COS_EPS};
 use crate::material::SurfaceParams;
 use crate::math::Frame;
 use crate::render::effects::Effects;
@@ -71,9 +71,12 @@ fn specular_probability(p: &SurfaceParams, nov: f32, effects: Effects) -> f32 {
 /// Returns (diffuse, specular, shadow rays traced).
 pub fn shade_point(s: &Surfel, wo: Vec3, p: &SurfaceParams, light: &LightSampler, bvh: &Bvh, settings: &McSettings, rng: &mut Sampler) -> (Vec3, Vec3, u64) {
     let frame = Frame::from_normal(s.normal);
+    // Interpolated normals can face slightly away from the viewer at silhouettes: keep wo just
+    // above the shading horizon so the BRDF and its sampling stay defined.
     let wo_l = frame.to_local(wo);
-    let nov = wo_l.z.clamp(COS_MIN, COS_MAX);
-    let alpha = brdf::alpha(p.roughness);
+    let wo_l = if wo_l.z < COS_EPS { Vec3::new(wo_l.x, wo_l.y, COS_EPS).normalize_or(glam::Vec3::Z) } else { wo_l };
+    let nov = brdf::clamp_cos(wo_l.z);
+    let alpha = brdf::alpha_from_roughness(p.roughness);
     let ps = specular_probability(p, nov, settings.effects);
     let bsdf_pdf = |wi_l: Vec3| -> f32 {
         let mut pdf = (1.0 - ps) * brdf::pdf_cosine(wi_l);
@@ -97,10 +100,10 @@ pub fn shade_point(s: &Surfel, wo: Vec3, p: &SurfaceParams, light: &LightSampler
     };
     // Radiance contribution of direction wi (local wi_l) with MIS weight / pdf already folded in `scale`.
     let contribution = |wi_l: Vec3, radiance: Vec3, scale: f32| -> (Vec3, Vec3) {
-        let cos = wi_l.z.clamp(0.0, COS_MAX);
+        let cos = brdf::clamp_cos(wi_l.z);
         let diffuse = radiance * (cos / std::f32::consts::PI * scale);
         let specular = if settings.effects.specular {
-            brdf::eval_specular(p, wo_l, wi_l) * radiance * scale
+            brdf::eval(p, wo_l, wi_l).specular * radiance * scale
         } else {
             Vec3::ZERO
         };

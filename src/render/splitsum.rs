@@ -6,7 +6,7 @@ use rayon::prelude::*;
 
 use crate::light::brdf_lut::BrdfLut;
 use crate::light::prefilter::SplitSumLight;
-use crate::material::brdf::{COS_MAX, COS_MIN};
+use crate::material::brdf;
 use crate::material::SurfaceParams;
 use crate::render::effects::Effects;
 use crate::render::gbuffer::GBuffer;
@@ -17,8 +17,8 @@ pub fn shade_point(normal: Vec3, wo: Vec3, p: &SurfaceParams, light: &SplitSumLi
     if !effects.specular {
         return (diffuse, Vec3::ZERO);
     }
-    let nov = normal.dot(wo).clamp(COS_MIN, COS_MAX);
-    let refl = (2.0 * nov * normal - wo).normalize();
+    let nov = brdf::clamp_cos(normal.dot(wo));
+    let refl = (2.0 * normal.dot(wo) * normal - wo).normalize_or(normal);
     let f0 = Vec3::splat(0.04).lerp(p.kd, p.metallic);
     let (a, b) = lut.lookup(nov, p.roughness);
     let specular = light.specular(refl, p.roughness) * (f0 * a + Vec3::splat(b));

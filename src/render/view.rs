@@ -42,6 +42,10 @@ impl Default for RenderSettings {
     }
 }
 
+/// Split-sum BRDF table resolution and samples per entry (computed once per light preparation).
+const BRDF_LUT_SIZE: usize = 32;
+const BRDF_LUT_SAMPLES: u32 = 512;
+
 /// An environment light with the derived data each shading mode needs, built on first use only.
 pub struct PreparedLight {
     pub cube: CubeMap,
@@ -55,7 +59,7 @@ impl PreparedLight {
     }
 
     pub fn split_sum(&self) -> &(SplitSumLight, BrdfLut) {
-        self.split_sum.get_or_init(|| (SplitSumLight::new(&self.cube), BrdfLut::default_table()))
+        self.split_sum.get_or_init(|| (SplitSumLight::new(&self.cube), BrdfLut::compute(BRDF_LUT_SIZE, BRDF_LUT_SAMPLES)))
     }
 
     pub fn sampler(&self) -> &LightSampler {
@@ -106,9 +110,10 @@ pub fn render_view(mesh: &Mesh, bvh: &Bvh, light: &PreparedLight, camera: &Camer
 /// Divide colour by alpha where alpha > 0 (straight alpha, as the dataset stores it).
 pub fn unpremultiply(mut img: Image) -> Image {
     for p in img.data.chunks_exact_mut(4) {
-        if p[3] > 0.0 {
+        let alpha = p[3];
+        if alpha > 0.0 {
             for c in &mut p[..3] {
-                *c /= p[3];
+                *c /= alpha;
             }
         }
     }
