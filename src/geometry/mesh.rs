@@ -28,6 +28,20 @@ pub struct Mesh {
 }
 
 impl Mesh {
+    /// Append another mesh's vertices, triangles, parts and materials (indices shifted).
+    pub fn append(&mut self, other: Mesh) {
+        let vertex_offset = self.positions.len() as u32;
+        let part_offset = self.parts.len() as u32;
+        let material_offset = self.materials.len();
+        self.positions.extend(other.positions);
+        self.normals.extend(other.normals);
+        self.uvs.extend(other.uvs);
+        self.triangles.extend(other.triangles.iter().map(|t| t.map(|i| i + vertex_offset)));
+        self.triangle_part.extend(other.triangle_part.iter().map(|p| p + part_offset));
+        self.parts.extend(other.parts.into_iter().map(|p| Part { material: p.material + material_offset, ..p }));
+        self.materials.extend(other.materials);
+    }
+
     /// Axis-aligned bounds (min, max) of all vertex positions; `None` for an empty mesh.
     pub fn bounds(&self) -> Option<(Vec3, Vec3)> {
         let first = *self.positions.first()?;
