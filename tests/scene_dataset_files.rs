@@ -66,6 +66,8 @@ fn write_view(dir: &Path, k: usize, relit: bool, deep: bool) {
     write_exr_channels(&dir.join("depth.exr"), &depth, &["Z"]).unwrap();
     if relit {
         write(&dir.join("rgba_city.png"), &rgba, deep);
+        // NeRFactor's one-light-at-a-time renders are not probes.
+        write(&dir.join("rgba_olat-0000-0000.png"), &rgba, deep);
     }
     let flat: Vec<String> = rows(c2w(k)).concat().iter().map(|v| v.to_string()).collect();
     let meta = serde_json::json!({
@@ -152,6 +154,7 @@ fn nerfactor_layout_loads_and_every_map_decodes() {
 
         let t = &ds.test[0];
         assert_eq!(t.relit_probes().unwrap(), ["city"]);
+        assert!(t.has_relit("olat-0000-0000") && t.load_relit("olat-0000-0000").is_ok());
         assert_eq!(t.load_relit("city").unwrap(), t.load_rgba().unwrap());
         let msg = error_text(t.load_relit("forest"));
         assert!(msg.contains("rgba_forest.png") && msg.contains("not found"), "{msg}");
