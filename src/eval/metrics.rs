@@ -4,6 +4,8 @@
 //! Conventions: metrics compare the *colour* channels (grey, or the first three); alpha is never
 //! compared — turn it into a mask with [`mask_from_alpha`]. Masks are one `bool` per pixel;
 //! `None` means every pixel. Values are compared as given (peak 1 for PSNR).
+//! Images of different sizes or colour-channel counts, or a mask of the wrong length, are a
+//! programming error and panic with a message (the dataset loader checks sizes of files).
 
 use glam::DVec3;
 

@@ -371,6 +371,8 @@ impl View {
     }
 
     /// Names of the probes this view has relit images for (from `rgba_<probe>.png`), sorted.
+    /// NeRFactor's one-light-at-a-time renders (`rgba_olat-*.png`, hundreds per view) are not listed
+    /// (nor size-checked at load); `load_relit("olat-…")` still reads them.
     pub fn relit_probes(&self) -> Result<Vec<String>> {
         if self.layout != Layout::NeRFactor {
             return Ok(Vec::new());
@@ -382,6 +384,7 @@ impl View {
                 let n = e.file_name().to_string_lossy().into_owned();
                 n.strip_prefix("rgba_").and_then(|s| s.strip_suffix(".png")).map(str::to_owned)
             })
+            .filter(|n| !n.starts_with("olat"))
             .collect();
         names.sort();
         Ok(names)

@@ -10,6 +10,8 @@ use super::require_file;
 use crate::image::Image;
 
 type FlatLayer = exrs::Layer<AnyChannels<FlatSamples>>;
+/// The display window: position and size.
+type Window = (exrs::Vec2<i32>, exrs::Vec2<usize>);
 
 /// Read the first layer of an EXR file as f32.
 ///
@@ -84,7 +86,7 @@ pub fn write_exr_channels(path: &Path, img: &Image, names: &[&str]) -> Result<()
 }
 
 /// The first layer at full resolution, and the display window (position, size).
-fn read_first_layer(path: &Path) -> Result<(FlatLayer, (exrs::Vec2<i32>, exrs::Vec2<usize>))> {
+fn read_first_layer(path: &Path) -> Result<(FlatLayer, Window)> {
     require_file(path, "EXR image")?;
     let image = exrs::read()
         .no_deep_data()
@@ -111,7 +113,7 @@ fn find_channel(layer: &FlatLayer, name: &str) -> Option<usize> {
 }
 
 /// Place the picked channels of the data window into an image of the display window's size.
-fn assemble(layer: &FlatLayer, (origin, size): (exrs::Vec2<i32>, exrs::Vec2<usize>), picked: &[usize]) -> Image {
+fn assemble(layer: &FlatLayer, (origin, size): Window, picked: &[usize]) -> Image {
     let (w, h) = (size.width(), size.height());
     let mut out = Image::new(w, h, picked.len());
     let (lw, lh) = (layer.size.width(), layer.size.height());

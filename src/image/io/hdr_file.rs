@@ -12,6 +12,10 @@ use super::require_file;
 use crate::image::Image;
 
 /// Read a Radiance .hdr file as linear RGB (3 channels).
+///
+/// RGBE texels decode as m·2^(e−136) (no half-code offset), as OpenCV does (NeRFactor reads its
+/// probes with OpenCV) and as the shared hotdog renders assume; Radiance's own and Blender's
+/// readers add 0.5 to m, which differs by up to 0.5/m (e.g. 0.3 % at m = 182).
 pub fn read_hdr(path: &Path) -> Result<Image> {
     require_file(path, "Radiance HDR image")?;
     let file = File::open(path).with_context(|| format!("cannot open HDR image {}", path.display()))?;
