@@ -92,7 +92,7 @@ fn main() -> Result<()> {
         // Warm-up and hit counting.
         let hits = primary.par_iter().filter(|(o, d)| bvh.closest_hit(*o, *d, 0.0, f32::INFINITY).is_some()).count();
         let best_of = |f: &dyn Fn() -> usize| -> Duration {
-            (0..3)
+            (0..5)
                 .map(|_| {
                     let t = Instant::now();
                     std::hint::black_box(f());
