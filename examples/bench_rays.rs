@@ -48,6 +48,29 @@ fn random_dir(rng: &mut Pcg64) -> Vec3 {
     Vec3::new(r * phi.cos(), r * phi.sin(), z)
 }
 
+/// CPU time this thread has run, in ns (Linux schedstat). With other jobs competing for the
+/// cores, wall-clock rates drift run to run; per-CPU-second rates on one thread do not.
+fn thread_cpu_ns() -> Option<u64> {
+    std::fs::read_to_string("/proc/thread-self/schedstat").ok()?.split_whitespace().next()?.parse().ok()
+}
+
+/// Single-thread rays per CPU second for `f` over `rays` (best of 3).
+fn cpu_rate(rays: &[(Vec3, Vec3)], f: &dyn Fn(Vec3, Vec3) -> bool) -> Option<f64> {
+    let mut best: Option<f64> = None;
+    for _ in 0..3 {
+        let t0 = thread_cpu_ns()?;
+        std::hint::black_box(rays.iter().filter(|(o, d)| f(*o, *d)).count());
+        let ns = (thread_cpu_ns()? - t0).max(1);
+        let rate = rays.len() as f64 / (ns as f64 * 1e-9) / 1e6;
+        best = Some(best.map_or(rate, |b: f64| b.max(rate)));
+    }
+    best
+}
+
+fn fmt_rate(r: Option<f64>) -> String {
+    r.map_or("n/a".into(), |r| format!("{r:.2}"))
+}
+
 fn mrays(n: usize, t: Duration) -> f64 {
     n as f64 / t.as_secs_f64() / 1e6
 }
@@ -78,8 +101,11 @@ fn main() -> Result<()> {
         }
     }
     println!("{} coherent rays, {} incoherent rays\n", primary.len(), secondary.len());
+    println!("Wall clock, rayon over all threads (sensitive to other load on the machine):\n");
     println!("| structure | build preset | build ms | coherent closest Mray/s | incoherent closest Mray/s | incoherent any-hit Mray/s | primary hit rate |");
     println!("|---|---|---|---|---|---|---|");
+    let coherent_subset = &primary[..2 * 512 * 512];
+    let mut cpu_rows = Vec::new();
 
     for (name, params) in [
         ("fast", BvhBuildParams::fast_build()),
@@ -112,6 +138,12 @@ fn main() -> Result<()> {
             mrays(secondary.len(), any),
             hits as f64 / primary.len() as f64
         );
+        cpu_rows.push(format!(
+            "| CWBVH (Bvh) | {name} | {} | {} | {} |",
+            fmt_rate(cpu_rate(coherent_subset, &|o, d| bvh.closest_hit(o, d, 0.0, f32::INFINITY).is_some())),
+            fmt_rate(cpu_rate(&secondary, &|o, d| bvh.closest_hit(o, d, 0.0, f32::INFINITY).is_some())),
+            fmt_rate(cpu_rate(&secondary, &|o, d| bvh.any_hit(o, d, 0.0, f32::INFINITY))),
+        ));
     }
 
     // BVH2 with obvhs' own triangle test, for the structure comparison.
@@ -149,5 +181,17 @@ fn main() -> Result<()> {
         mrays(secondary.len(), inc),
         mrays(secondary.len(), anyt)
     );
+    cpu_rows.push(format!(
+        "| BVH2 (obvhs traversal) | medium | {} | {} | {} |",
+        fmt_rate(cpu_rate(coherent_subset, &closest)),
+        fmt_rate(cpu_rate(&secondary, &closest)),
+        fmt_rate(cpu_rate(&secondary, &any)),
+    ));
+    println!("\nOne thread, rays per CPU second (Mray/s; /proc/thread-self/schedstat):\n");
+    println!("| structure | build preset | coherent closest | incoherent closest | incoherent any-hit |");
+    println!("|---|---|---|---|---|");
+    for row in cpu_rows {
+        println!("{row}");
+    }
     Ok(())
 }
