@@ -62,7 +62,7 @@ fn hotdog_ground_truth_matches_readme_and_materials_json() {
                 assert!((*c - v3(&jm["base_color"])).abs().max_element() < 1e-6, "{name} base colour")
             }
             (BaseColor::Texture(img), serde_json::Value::Object(o)) => {
-                assert_eq!(o["texture"].as_str().unwrap().starts_with(mat_name), true);
+                assert!(o["texture"].as_str().unwrap().starts_with(mat_name));
                 assert_eq!((img.width, img.height, img.channels), (1024, 1024, 3));
             }
             (got, want) => panic!("{name}: base colour {got:?} vs {want}"),

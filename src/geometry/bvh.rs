@@ -157,14 +157,16 @@ impl Bvh {
         let ray = Ray::new(o, d, tmin, tmax);
         let mut state = bvh.new_traversal(ray.direction);
         let mut node;
-        let mut hit = false;
-        obvhs::traverse!(bvh, node, state, node.intersect_ray(&ray, state.oct_inv4), {
-            if intersect_packed(&self.triangles[state.primitive_id as usize], o, d, tmin, tmax).is_some() {
-                hit = true;
-                break;
-            }
-        });
-        hit
+        // The macro runs the primitive block inside its own inner loop, so a plain `break` would
+        // only leave that loop; break out of the labelled block to stop the whole traversal.
+        'traversal: {
+            obvhs::traverse!(bvh, node, state, node.intersect_ray(&ray, state.oct_inv4), {
+                if intersect_packed(&self.triangles[state.primitive_id as usize], o, d, tmin, tmax).is_some() {
+                    break 'traversal true;
+                }
+            });
+            false
+        }
     }
 }
 

@@ -115,7 +115,7 @@ impl Loader<'_> {
             Some(ix) => ix.into_u32().collect(),
             None => (0..n as u32).collect(),
         };
-        if indices.len() % 3 != 0 {
+        if !indices.len().is_multiple_of(3) {
             bail!("{}: {} indices is not a multiple of 3", ctx(), indices.len());
         }
         if let Some(bad) = indices.iter().find(|&&i| i as usize >= n) {
@@ -210,7 +210,7 @@ struct BinWriter {
 
 impl BinWriter {
     fn push(&mut self, bytes: Vec<u8>, count: usize, kind: &str, component: u32, target: u32, extra: serde_json::Value) -> usize {
-        while self.bin.len() % 4 != 0 {
+        while !self.bin.len().is_multiple_of(4) {
             self.bin.push(0);
         }
         self.views.push(json!({ "buffer": 0, "byteOffset": self.bin.len(), "byteLength": bytes.len(), "target": target }));
@@ -316,7 +316,7 @@ pub fn write_gltf(path: impl AsRef<Path>, mesh: &Mesh, base_color_textures: &[Op
     // One glTF mesh per part keeps part names (glTF names meshes, not primitives).
     let meshes: Vec<_> = primitives.iter().map(|(name, p)| json!({ "name": name, "primitives": [p] })).collect();
     let nodes: Vec<_> = (0..meshes.len()).map(|k| json!({ "mesh": k })).collect();
-    while w.bin.len() % 4 != 0 {
+    while !w.bin.len().is_multiple_of(4) {
         w.bin.push(0);
     }
     let bin_name = path.with_extension("bin");
@@ -343,7 +343,7 @@ pub fn write_gltf(path: impl AsRef<Path>, mesh: &Mesh, base_color_textures: &[Op
     let text = serde_json::to_string(&doc)?;
     if glb {
         let mut json_chunk = text.into_bytes();
-        while json_chunk.len() % 4 != 0 {
+        while !json_chunk.len().is_multiple_of(4) {
             json_chunk.push(b' ');
         }
         let total = 12 + 8 + json_chunk.len() + 8 + w.bin.len();

@@ -40,7 +40,7 @@ struct ObjGeometry {
 }
 
 fn read_obj_geometry(path: &Path) -> Result<ObjGeometry> {
-    let options = tobj::LoadOptions { single_index: true, triangulate: true, ignore_points: true, ignore_lines: true, ..Default::default() };
+    let options = tobj::LoadOptions { single_index: true, triangulate: true, ignore_points: true, ignore_lines: true };
     let text = std::fs::read_to_string(path).with_context(|| format!("reading OBJ file {}", path.display()))?;
     let text = match repair_vt_numbered_like_v(&text) {
         Some(fixed) => {

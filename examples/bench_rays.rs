@@ -1,0 +1,197 @@
+//! Ray throughput on the hotdog ground-truth mesh (66k triangles).
+//!
+//!     cargo run --release --example bench_rays [-- <gt dir>]
+//!
+//! Coherent rays: 512² camera rays for 8 views (closest hit). Incoherent rays: from G-buffer hit
+//! points (offset along the normal) in uniformly random directions, like shadow / bounce rays
+//! (closest hit and any hit). Compares obvhs build presets for the CWBVH `Bvh` uses, and obvhs'
+//! binary BVH2 with its own traversal as the alternative structure. All rayon-parallel.
+
+use std::path::PathBuf;
+use std::time::{Duration, Instant};
+
+use anyhow::{Context, Result};
+use glam::{Mat4, Vec3, Vec3A};
+use obvhs::bvh2::builder::build_bvh2_from_tris;
+use obvhs::ray::{Ray, RayHit};
+use obvhs::triangle::Triangle;
+use obvhs::BvhBuildParams;
+use rand::{Rng, SeedableRng};
+use rand_pcg::Pcg64;
+use rayon::prelude::*;
+use reconstruct::geometry::bvh::Bvh;
+use reconstruct::geometry::obj::load_ground_truth;
+use reconstruct::geometry::Mesh;
+use reconstruct::render::gbuffer::GBuffer;
+use reconstruct::scene::camera::Camera;
+
+fn cameras(size: usize) -> Vec<Camera> {
+    // Eight views on a ring 4.03 units from the origin, 30° above the plate (like the dataset).
+    (0..8)
+        .map(|k| {
+            let phi = k as f32 * std::f32::consts::TAU / 8.0;
+            let eye = 4.03 * Vec3::new(phi.cos() * 0.866, phi.sin() * 0.866, 0.5);
+            // OpenGL camera: x right, y up, looking down −z.
+            let back = eye.normalize();
+            let right = Vec3::Z.cross(back).normalize();
+            let up = back.cross(right);
+            let c2w = Mat4::from_cols(right.extend(0.0), up.extend(0.0), back.extend(0.0), eye.extend(1.0));
+            Camera { c2w, fov_x: 0.6911, width: size, height: size }
+        })
+        .collect()
+}
+
+fn random_dir(rng: &mut Pcg64) -> Vec3 {
+    let z: f32 = rng.random_range(-1.0..1.0);
+    let phi: f32 = rng.random_range(0.0..std::f32::consts::TAU);
+    let r = (1.0 - z * z).max(0.0).sqrt();
+    Vec3::new(r * phi.cos(), r * phi.sin(), z)
+}
+
+/// CPU time this thread has run, in ns (Linux schedstat). With other jobs competing for the
+/// cores, wall-clock rates drift run to run; per-CPU-second rates on one thread do not.
+fn thread_cpu_ns() -> Option<u64> {
+    std::fs::read_to_string("/proc/thread-self/schedstat").ok()?.split_whitespace().next()?.parse().ok()
+}
+
+/// Single-thread rays per CPU second for `f` over `rays` (best of 3).
+fn cpu_rate(rays: &[(Vec3, Vec3)], f: &dyn Fn(Vec3, Vec3) -> bool) -> Option<f64> {
+    let mut best: Option<f64> = None;
+    for _ in 0..3 {
+        let t0 = thread_cpu_ns()?;
+        std::hint::black_box(rays.iter().filter(|(o, d)| f(*o, *d)).count());
+        let ns = (thread_cpu_ns()? - t0).max(1);
+        let rate = rays.len() as f64 / (ns as f64 * 1e-9) / 1e6;
+        best = Some(best.map_or(rate, |b: f64| b.max(rate)));
+    }
+    best
+}
+
+fn fmt_rate(r: Option<f64>) -> String {
+    r.map_or("n/a".into(), |r| format!("{r:.2}"))
+}
+
+fn mrays(n: usize, t: Duration) -> f64 {
+    n as f64 / t.as_secs_f64() / 1e6
+}
+
+fn main() -> Result<()> {
+    let gt = std::env::args().nth(1).map(PathBuf::from).unwrap_or_else(|| {
+        std::env::var_os("RECONSTRUCT_SHARED_DIR")
+            .map(PathBuf::from)
+            .unwrap_or_else(|| PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared"))
+            .join("data/nerfactor/hotdog_2163/gt")
+    });
+    let mesh: Mesh = load_ground_truth(&gt).with_context(|| format!("loading the hotdog from {}", gt.display()))?;
+    println!("hotdog: {} triangles, {} vertices, {} threads", mesh.triangles.len(), mesh.positions.len(), rayon::current_num_threads());
+
+    // Coherent: primary rays. Incoherent: random directions from the visible surface points.
+    let cams = cameras(512);
+    let primary: Vec<(Vec3, Vec3)> =
+        cams.iter().flat_map(|c| (0..c.width * c.height).map(move |i| (c.origin(), c.ray_dir((i % c.width) as f32 + 0.5, (i / c.width) as f32 + 0.5)))).collect();
+    let reference_bvh = Bvh::build(&mesh);
+    let mut rng = Pcg64::seed_from_u64(1);
+    let mut secondary = Vec::new();
+    for c in &cams {
+        let gb = GBuffer::trace(&mesh, &reference_bvh, &c.resized(256, 256));
+        for s in gb.surfels.iter().flatten() {
+            let d = random_dir(&mut rng);
+            let n = if d.dot(s.geo_normal) >= 0.0 { s.geo_normal } else { -s.geo_normal };
+            secondary.push((s.position + 1e-4 * n, d));
+        }
+    }
+    println!("{} coherent rays, {} incoherent rays\n", primary.len(), secondary.len());
+    println!("Wall clock, rayon over all threads (sensitive to other load on the machine):\n");
+    println!("| structure | build preset | build ms | coherent closest Mray/s | incoherent closest Mray/s | incoherent any-hit Mray/s | primary hit rate |");
+    println!("|---|---|---|---|---|---|---|");
+    let coherent_subset = &primary[..2 * 512 * 512];
+    let mut cpu_rows = Vec::new();
+
+    for (name, params) in [
+        ("fast", BvhBuildParams::fast_build()),
+        ("medium", BvhBuildParams::medium_build()),
+        ("slow (spatial splits)", BvhBuildParams::slow_build()),
+    ] {
+        let t = Instant::now();
+        let bvh = Bvh::build_with(&mesh, params);
+        let build = t.elapsed();
+        // Warm-up and hit counting.
+        let hits = primary.par_iter().filter(|(o, d)| bvh.closest_hit(*o, *d, 0.0, f32::INFINITY).is_some()).count();
+        let best_of = |f: &dyn Fn() -> usize| -> Duration {
+            (0..5)
+                .map(|_| {
+                    let t = Instant::now();
+                    std::hint::black_box(f());
+                    t.elapsed()
+                })
+                .min()
+                .unwrap_or_default()
+        };
+        let coh = best_of(&|| primary.par_iter().filter(|(o, d)| bvh.closest_hit(*o, *d, 0.0, f32::INFINITY).is_some()).count());
+        let inc = best_of(&|| secondary.par_iter().filter(|(o, d)| bvh.closest_hit(*o, *d, 0.0, f32::INFINITY).is_some()).count());
+        let any = best_of(&|| secondary.par_iter().filter(|(o, d)| bvh.any_hit(*o, *d, 0.0, f32::INFINITY)).count());
+        println!(
+            "| CWBVH (Bvh) | {name} | {:.0} | {:.2} | {:.2} | {:.2} | {:.3} |",
+            build.as_secs_f64() * 1e3,
+            mrays(primary.len(), coh),
+            mrays(secondary.len(), inc),
+            mrays(secondary.len(), any),
+            hits as f64 / primary.len() as f64
+        );
+        cpu_rows.push(format!(
+            "| CWBVH (Bvh) | {name} | {} | {} | {} |",
+            fmt_rate(cpu_rate(coherent_subset, &|o, d| bvh.closest_hit(o, d, 0.0, f32::INFINITY).is_some())),
+            fmt_rate(cpu_rate(&secondary, &|o, d| bvh.closest_hit(o, d, 0.0, f32::INFINITY).is_some())),
+            fmt_rate(cpu_rate(&secondary, &|o, d| bvh.any_hit(o, d, 0.0, f32::INFINITY))),
+        ));
+    }
+
+    // BVH2 with obvhs' own triangle test, for the structure comparison.
+    let tris: Vec<Triangle> = (0..mesh.triangles.len())
+        .map(|t| {
+            let [a, b, c] = mesh.triangle_positions(t);
+            Triangle { v0: a.into(), v1: b.into(), v2: c.into() }
+        })
+        .collect();
+    let t = Instant::now();
+    let bvh2 = build_bvh2_from_tris(&tris, BvhBuildParams::medium_build(), &mut Duration::default());
+    let build = t.elapsed();
+    let closest = |o: Vec3, d: Vec3| {
+        let mut hit = RayHit::none();
+        let ray = Ray::new_inf(Vec3A::from(o), Vec3A::from(d) + Vec3A::ZERO);
+        bvh2.ray_traverse(ray, &mut hit, |r, id| tris[bvh2.primitive_indices[id] as usize].intersect(r))
+    };
+    let any = |o: Vec3, d: Vec3| {
+        let ray = Ray::new_inf(Vec3A::from(o), Vec3A::from(d) + Vec3A::ZERO);
+        !bvh2.ray_traverse_miss(ray, |r, id| tris[bvh2.primitive_indices[id] as usize].intersect(r))
+    };
+    let time = |f: &dyn Fn() -> usize| {
+        let t = Instant::now();
+        std::hint::black_box(f());
+        t.elapsed()
+    };
+    time(&|| primary.par_iter().filter(|(o, d)| closest(*o, *d)).count());
+    let coh = time(&|| primary.par_iter().filter(|(o, d)| closest(*o, *d)).count());
+    let inc = time(&|| secondary.par_iter().filter(|(o, d)| closest(*o, *d)).count());
+    let anyt = time(&|| secondary.par_iter().filter(|(o, d)| any(*o, *d)).count());
+    println!(
+        "| BVH2 (obvhs traversal) | medium | {:.0} | {:.2} | {:.2} | {:.2} | |",
+        build.as_secs_f64() * 1e3,
+        mrays(primary.len(), coh),
+        mrays(secondary.len(), inc),
+        mrays(secondary.len(), anyt)
+    );
+    cpu_rows.push(format!(
+        "| BVH2 (obvhs traversal) | medium | {} | {} | {} |",
+        fmt_rate(cpu_rate(coherent_subset, &closest)),
+        fmt_rate(cpu_rate(&secondary, &closest)),
+        fmt_rate(cpu_rate(&secondary, &any)),
+    ));
+    println!("\nOne thread, rays per CPU second (Mray/s; /proc/thread-self/schedstat):\n");
+    println!("| structure | build preset | coherent closest | incoherent closest | incoherent any-hit |");
+    println!("|---|---|---|---|---|");
+    for row in cpu_rows {
+        println!("{row}");
+    }
+    Ok(())
+}
