@@ -152,46 +152,55 @@ fn make_tiles(res: usize, size: usize) -> Vec<Tile> {
     tiles
 }
 
-/// Texel directions of a whole map, in data order.
-fn texel_dirs(res: usize) -> Vec<Vec3> {
-    (0..6 * res * res).map(|k| texel_dir(res, k / (res * res), (k / res) % res, k % res)).collect()
-}
-
 /// Normalised kernel filter: output texel r of an `out_res` map gets ∑ w(l, r)·src(l) / ∑ w(l, r)
-/// over source texels l with sin²θ_h ≤ `sin2_cut`, where `weight(l, r)` already includes Ω(l).
+/// over source texels l, where `weight(l, r, Ω_l)` already includes the solid angle and vanishes
+/// beyond `cone_angle` from r.
+///
+/// Culling is two-level: 8×8 output tiles keep the 4×4 source tiles that can reach any of their
+/// texels, then each output texel keeps those that reach its own cone. Source texels are packed
+/// tile by tile so each candidate tile is one contiguous run.
 fn kernel_filter(src: &CubeMap, out_res: usize, cone_angle: f32, weight: impl Fn(Vec3, Vec3, f32) -> f32 + Sync) -> CubeMap {
-    const TILE: usize = 8;
-    let src_dirs = texel_dirs(src.res);
-    let src_area = face_solid_angles(src.res);
-    let src_tiles = make_tiles(src.res, TILE);
-    let out_tiles = make_tiles(out_res, TILE);
+    use std::f32::consts::PI;
     let sres = src.res;
+    let src_area = face_solid_angles(sres);
+    let src_tiles = make_tiles(sres, 4);
+    let out_tiles = make_tiles(out_res, 8);
+    // (direction, solid angle, value) in tile order; tile t owns packed[start[t]..start[t + 1]].
+    let mut packed = Vec::with_capacity(6 * sres * sres);
+    let mut start = vec![0usize];
+    for st in &src_tiles {
+        for i in st.i0..st.i1 {
+            for j in st.j0..st.j1 {
+                packed.push((texel_dir(sres, st.face, i, j), src_area[i * sres + j], src.data[(st.face * sres + i) * sres + j]));
+            }
+        }
+        start.push(packed.len());
+    }
+    // cos of the reach of each source tile, per texel and (with the widest output tile) per tile.
+    let cos_reach = |a: f32| if a >= PI { -2.0 } else { a.cos() };
+    let widest_out = out_tiles.iter().map(|t| t.radius).fold(0.0f32, f32::max);
+    let texel_reach: Vec<f32> = src_tiles.iter().map(|st| cos_reach(cone_angle + st.radius)).collect();
+    let tile_reach: Vec<f32> = src_tiles.iter().map(|st| cos_reach(cone_angle + st.radius + widest_out)).collect();
     let per_tile: Vec<Vec<(usize, Vec3)>> = out_tiles
         .par_iter()
         .map(|ot| {
-            let candidates: Vec<&Tile> = src_tiles
-                .iter()
-                .filter(|st| {
-                    let reach = cone_angle + ot.radius + st.radius;
-                    reach >= std::f32::consts::PI || ot.centre.dot(st.centre).clamp(-1.0, 1.0).acos() <= reach
-                })
-                .collect();
+            let coarse: Vec<usize> = (0..src_tiles.len()).filter(|&t| ot.centre.dot(src_tiles[t].centre) >= tile_reach[t]).collect();
+            let mut fine = Vec::with_capacity(coarse.len());
             let mut out = Vec::with_capacity((ot.i1 - ot.i0) * (ot.j1 - ot.j0));
             for i in ot.i0..ot.i1 {
                 for j in ot.j0..ot.j1 {
                     let r = texel_dir(out_res, ot.face, i, j);
+                    fine.clear();
+                    fine.extend(coarse.iter().copied().filter(|&t| r.dot(src_tiles[t].centre) >= texel_reach[t]));
                     let mut sum = Vec3::ZERO;
                     let mut wsum = 0.0f32;
-                    for st in &candidates {
-                        for si in st.i0..st.i1 {
-                            let row = (st.face * sres + si) * sres;
-                            for sj in st.j0..st.j1 {
-                                let w = weight(src_dirs[row + sj], r, src_area[si * sres + sj]);
-                                if w > 0.0 {
-                                    sum += src.data[row + sj] * w;
-                                    wsum += w;
-                                }
-                            }
+                    for &t in &fine {
+                        for &(l, area, value) in &packed[start[t]..start[t + 1]] {
+                            // Branch-free accumulation: about half the candidates lie outside the cone,
+                            // and a mispredicted branch costs more than the multiply-adds.
+                            let w = weight(l, r, area);
+                            sum += value * w;
+                            wsum += w;
                         }
                     }
                     let value = if wsum > 0.0 { sum / wsum } else { Vec3::ZERO };
@@ -214,12 +223,13 @@ pub fn prefilter_specular(src: &CubeMap, out_res: usize, roughness: f32, kernel_
     let sin2_cut = lobe_cutoff_sin2(alpha, kernel_mass);
     // θ_l = 2θ_h; a small slack covers the texel-centre test at the cone's rim.
     let cone = 2.0 * sin2_cut.sqrt().asin() + 1e-4;
+    let a2 = alpha * alpha;
     kernel_filter(src, out_res, cone, move |l, r, area| {
-        if (l - r).length_squared() * 0.25 > sin2_cut {
-            0.0
-        } else {
-            ggx_lobe_weight(l, r, alpha) * area
-        }
+        // ggx_lobe_weight inlined without branches (s ≤ sin2_cut ≤ ½ implies l·r ≥ 0).
+        let s = (l - r).length_squared() * 0.25;
+        let d = a2 * (1.0 - s) + s;
+        let w = (1.0 - 2.0 * s) * a2 / (std::f32::consts::PI * d * d) * 0.25 * area;
+        if s <= sin2_cut { w } else { 0.0 }
     })
 }
 
