@@ -45,8 +45,12 @@ pub fn face_dir(face: usize, s: f32, t: f32) -> Vec3 {
 }
 
 /// The face a direction hits and its face coordinates (s, t) ∈ [−1, 1]².
-/// Ties go to x, then y, then z. A zero direction maps to the centre of +z.
+/// Ties go to x, then y, then z. A zero or non-finite direction maps to the centre of +z, so a
+/// stray NaN normal cannot index outside the map.
 pub fn dir_to_face(d: Vec3) -> (usize, f32, f32) {
+    if !d.is_finite() {
+        return (4, 0.0, 0.0);
+    }
     let a = d.abs();
     if a.x >= a.y && a.x >= a.z && a.x > 0.0 {
         if d.x > 0.0 {

@@ -152,39 +152,70 @@ fn make_tiles(res: usize, size: usize) -> Vec<Tile> {
     tiles
 }
 
+/// Side of the source tiles and the number of texels (lanes) in one.
+const TILE_SIDE: usize = 4;
+const LANES: usize = TILE_SIDE * TILE_SIDE;
+
+/// One source tile's texels: directions, solid angles and RGB values, lane k = texel k of the tile.
+struct TileLanes {
+    x: [f32; LANES],
+    y: [f32; LANES],
+    z: [f32; LANES],
+    area: [f32; LANES],
+    value: [[f32; LANES]; 3],
+}
+
 /// Normalised kernel filter: output texel r of an `out_res` map gets ∑ w(l, r)·src(l) / ∑ w(l, r)
 /// over source texels l, where `weight(l, r, Ω_l)` already includes the solid angle and vanishes
 /// beyond `cone_angle` from r.
 ///
-/// Culling is two-level: 8×8 output tiles keep the 4×4 source tiles that can reach any of their
-/// texels, then each output texel keeps those that reach its own cone. Source texels are packed
+/// Culling is hierarchical: 8×8 output tiles keep the 32×32 and then the 4×4 source tiles that can
+/// reach any of their texels, then each output texel keeps those that reach its own cone. Source texels are packed
 /// tile by tile so each candidate tile is one contiguous run.
 fn kernel_filter(src: &CubeMap, out_res: usize, cone_angle: f32, weight: impl Fn(Vec3, Vec3, f32) -> f32 + Sync) -> CubeMap {
     use std::f32::consts::PI;
     let sres = src.res;
     let src_area = face_solid_angles(sres);
-    let src_tiles = make_tiles(sres, 4);
+    let src_tiles = make_tiles(sres, TILE_SIDE);
     let out_tiles = make_tiles(out_res, 8);
-    // (direction, solid angle, value) in tile order; tile t owns packed[start[t]..start[t + 1]].
-    let mut packed = Vec::with_capacity(6 * sres * sres);
-    let mut start = vec![0usize];
-    for st in &src_tiles {
-        for i in st.i0..st.i1 {
-            for j in st.j0..st.j1 {
-                packed.push((texel_dir(sres, st.face, i, j), src_area[i * sres + j], src.data[(st.face * sres + i) * sres + j]));
+    // Each 4×4 source tile packed as 16 lanes of structure-of-arrays data (padding lanes have zero
+    // solid angle, hence zero weight), so the inner loop vectorises.
+    let packed: Vec<TileLanes> = src_tiles
+        .iter()
+        .map(|st| {
+            let mut lanes = TileLanes { x: [0.0; LANES], y: [0.0; LANES], z: [1.0; LANES], area: [0.0; LANES], value: [[0.0; LANES]; 3] };
+            for (k, (i, j)) in (st.i0..st.i1).flat_map(|i| (st.j0..st.j1).map(move |j| (i, j))).enumerate() {
+                let d = texel_dir(sres, st.face, i, j);
+                let v = src.data[(st.face * sres + i) * sres + j];
+                (lanes.x[k], lanes.y[k], lanes.z[k]) = (d.x, d.y, d.z);
+                lanes.area[k] = src_area[i * sres + j];
+                (lanes.value[0][k], lanes.value[1][k], lanes.value[2][k]) = (v.x, v.y, v.z);
             }
-        }
-        start.push(packed.len());
-    }
+            lanes
+        })
+        .collect();
     // cos of the reach of each source tile, per texel and (with the widest output tile) per tile.
     let cos_reach = |a: f32| if a >= PI { -2.0 } else { a.cos() };
     let widest_out = out_tiles.iter().map(|t| t.radius).fold(0.0f32, f32::max);
     let texel_reach: Vec<f32> = src_tiles.iter().map(|st| cos_reach(cone_angle + st.radius)).collect();
     let tile_reach: Vec<f32> = src_tiles.iter().map(|st| cos_reach(cone_angle + st.radius + widest_out)).collect();
+    // 32×32 super-tiles group the 4×4 tiles so the per-output-tile culling does not grow as res⁴.
+    const SUPER: usize = 32;
+    let super_tiles = make_tiles(sres, SUPER);
+    let supers_per_side = sres.div_ceil(SUPER);
+    let mut groups = vec![Vec::new(); super_tiles.len()];
+    for (t, st) in src_tiles.iter().enumerate() {
+        groups[(st.face * supers_per_side + st.i0 / SUPER) * supers_per_side + st.j0 / SUPER].push(t);
+    }
+    let super_reach: Vec<f32> = super_tiles.iter().map(|st| cos_reach(cone_angle + st.radius + widest_out)).collect();
     let per_tile: Vec<Vec<(usize, Vec3)>> = out_tiles
         .par_iter()
         .map(|ot| {
-            let coarse: Vec<usize> = (0..src_tiles.len()).filter(|&t| ot.centre.dot(src_tiles[t].centre) >= tile_reach[t]).collect();
+            let coarse: Vec<usize> = (0..super_tiles.len())
+                .filter(|&g| ot.centre.dot(super_tiles[g].centre) >= super_reach[g])
+                .flat_map(|g| groups[g].iter().copied())
+                .filter(|&t| ot.centre.dot(src_tiles[t].centre) >= tile_reach[t])
+                .collect();
             let mut fine = Vec::with_capacity(coarse.len());
             let mut out = Vec::with_capacity((ot.i1 - ot.i0) * (ot.j1 - ot.j0));
             for i in ot.i0..ot.i1 {
@@ -192,17 +223,22 @@ fn kernel_filter(src: &CubeMap, out_res: usize, cone_angle: f32, weight: impl Fn
                     let r = texel_dir(out_res, ot.face, i, j);
                     fine.clear();
                     fine.extend(coarse.iter().copied().filter(|&t| r.dot(src_tiles[t].centre) >= texel_reach[t]));
-                    let mut sum = Vec3::ZERO;
-                    let mut wsum = 0.0f32;
+                    // Per-lane accumulators: a float sum across lanes would block vectorisation.
+                    let (mut aw, mut ar, mut ag, mut ab) = ([0.0f32; LANES], [0.0f32; LANES], [0.0f32; LANES], [0.0f32; LANES]);
                     for &t in &fine {
-                        for &(l, area, value) in &packed[start[t]..start[t + 1]] {
-                            // Branch-free accumulation: about half the candidates lie outside the cone,
-                            // and a mispredicted branch costs more than the multiply-adds.
-                            let w = weight(l, r, area);
-                            sum += value * w;
-                            wsum += w;
+                        let p = &packed[t];
+                        for k in 0..LANES {
+                            // Branch-free: about half the candidates lie outside the cone, and a
+                            // mispredicted branch costs more than the multiply-adds.
+                            let w = weight(Vec3::new(p.x[k], p.y[k], p.z[k]), r, p.area[k]);
+                            aw[k] += w;
+                            ar[k] += w * p.value[0][k];
+                            ag[k] += w * p.value[1][k];
+                            ab[k] += w * p.value[2][k];
                         }
                     }
+                    let wsum: f32 = aw.iter().sum();
+                    let sum = Vec3::new(ar.iter().sum(), ag.iter().sum(), ab.iter().sum());
                     let value = if wsum > 0.0 { sum / wsum } else { Vec3::ZERO };
                     out.push(((ot.face * out_res + i) * out_res + j, value));
                 }
