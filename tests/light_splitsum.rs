@@ -215,3 +215,22 @@ fn measure_prefilter_time() {
         println!("BrdfLut::compute({size}, {samples}): {:.1} ms", t.elapsed().as_secs_f64() * 1e3);
     }
 }
+
+/// Per-level prefilter cost for a 6×512² base; run with `--ignored --nocapture`.
+#[test]
+#[ignore]
+fn measure_prefilter_levels_512() {
+    use reconstruct::light::prefilter::{level_roughness, mip_chain, prefilter_specular};
+    let chain = mip_chain(&CubeMap::from_fn(512, smooth_light));
+    let rough = level_roughness(chain.len());
+    for (k, level) in chain.iter().enumerate() {
+        for src in k..chain.len() {
+            let t = Instant::now();
+            let _ = prefilter_specular(&chain[src], level.res, rough[k], 0.95);
+            println!("level {k} ({}², r={:.3}) from {}²: {:.3} s", level.res, rough[k], chain[src].res, t.elapsed().as_secs_f64());
+            if t.elapsed().as_secs_f64() < 0.05 {
+                break;
+            }
+        }
+    }
+}
