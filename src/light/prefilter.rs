@@ -11,9 +11,18 @@
 //!   the discrete ∑cos·Ω ≈ π), so a white Lambert surface under a constant L receives L.
 //!
 //! Cost control (a 6×512² base would take minutes naively): the kernel is cut where the lobe holds
-//! `kernel_mass` of its weight (NVDiffRec cuts at a similar cone), candidate source texels are
-//! found by culling 8×8 tiles against the cone, and each level reads the coarsest mip whose texels
-//! still resolve the lobe core (`texels_per_core` texels across the angle where D falls to ¼).
+//! `kernel_mass` of its weight (NVDiffRec cuts at a similar cone, about 92 % of the mass for small
+//! α), candidate source texels are found by hierarchical tile culling against the cone, the inner
+//! loop runs branch-free over 4×4 texel tiles stored as 16 SIMD lanes, and each level reads the
+//! coarsest mip whose texels still resolve the lobe core (`texels_per_core` texels across the angle
+//! where D falls to ¼). The last point differs from NVDiffRec, which filters every level from
+//! itself: e.g. with a 512² base the 256² level (roughness 0.185) reads the 64² mip, so its kernel
+//! is GGX convolved with a box at most ¼ of the lobe core wide (tests compare with brute force).
+//! Measured (`cargo test --release --test light_splitsum measure -- --ignored --nocapture`) on the
+//! shared 2-core machine under a load of ~5 from other jobs, kernel mass 0.9 / 0.95 / 0.99:
+//! 6×128² base 0.12 / 0.16 / 0.36 s, 6×256² 0.66 / 0.90 / 2.1 s, 6×512² 4.9 / 8.3 / 32 s — the
+//! 512² case is dominated by the roughness-0.08 level filtered at full resolution (7.5 s of 8.3).
+//!
 //! Every step is a fixed linear map of the base texels (weights depend only on geometry and
 //! roughness), so a backward pass is its transpose.
 
