@@ -188,7 +188,7 @@ fn hard_cases_stay_finite() {
         for metallic in [0.0f32, 1.0] {
             let p = SurfaceParams { kd, roughness, metallic };
             let alpha = alpha_from_roughness(roughness);
-            assert!(alpha.is_finite() && alpha >= 0.0064 - 1e-9 && alpha <= 1.0);
+            assert!((0.0064 - 1e-9..=1.0).contains(&alpha));
             for wo in dirs {
                 for wi in dirs {
                     let v = brdf::eval(&p, wo, wi);

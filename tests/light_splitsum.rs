@@ -167,11 +167,41 @@ fn brdf_lut_matches_brute_force_quadrature() {
     println!("worst |Δ| = {worst:.1e}");
 }
 
+#[test]
+fn sun_texel_and_degenerate_inputs_stay_finite() {
+    let mut base = CubeMap::constant(64, Vec3::splat(0.05));
+    let sun = base.texel_index(2, 7, 20);
+    base.data[sun] = Vec3::new(1e5, 8e4, 6e4);
+    let light = SplitSumLight::new(&base);
+    let sun_dir = base.texel_dir(2, 7, 20);
+    for level in &light.specular {
+        assert!(level.data.iter().all(|v| v.is_finite() && v.min_element() >= 0.0));
+    }
+    assert!(light.diffuse.data.iter().all(|v| v.is_finite() && v.min_element() >= 0.0));
+    for d in [sun_dir, -sun_dir, Vec3::ZERO, Vec3::new(f32::NAN, 0.0, 1.0), Vec3::new(1e30, -1e30, 3.0)] {
+        for r in [0.0f32, 0.08, 0.3, 1.0, 5.0, f32::NAN] {
+            let v = light.specular(d, r);
+            assert!(v.is_finite() && v.min_element() >= 0.0, "specular({d}, {r}) = {v}");
+        }
+        assert!(light.diffuse(d).is_finite());
+    }
+    // The sharpest level sees the sun at full strength; rougher levels spread it out.
+    assert!(light.specular(sun_dir, 0.08).x > light.specular(sun_dir, 0.5).x);
+    assert!(light.specular(sun_dir, 0.5).x > light.specular(sun_dir, 1.0).x);
+    let lut = BrdfLut::compute(16, 64);
+    for nov in [0.0f32, 1e-6, 0.5, 1.0, f32::NAN] {
+        for r in [0.0f32, 0.08, 1.0, 3.0, f32::NAN] {
+            let (a, b) = lut.lookup(nov, r);
+            assert!(a.is_finite() && b.is_finite() && a >= 0.0 && b >= 0.0, "lut({nov}, {r}) = ({a}, {b})");
+        }
+    }
+}
+
 /// Prefilter cost at the sizes the pipeline may use; run with `--ignored --nocapture`.
 #[test]
 #[ignore]
 fn measure_prefilter_time() {
-    for res in [64usize, 128, 256, 512] {
+    for res in [128usize, 256, 512] {
         let base = CubeMap::from_fn(res, smooth_light);
         for mass in [0.9f32, 0.95, 0.99] {
             let t = Instant::now();
@@ -183,5 +213,24 @@ fn measure_prefilter_time() {
         let t = Instant::now();
         let _ = BrdfLut::compute(size, samples);
         println!("BrdfLut::compute({size}, {samples}): {:.1} ms", t.elapsed().as_secs_f64() * 1e3);
+    }
+}
+
+/// Per-level prefilter cost for a 6×512² base; run with `--ignored --nocapture`.
+#[test]
+#[ignore]
+fn measure_prefilter_levels_512() {
+    use reconstruct::light::prefilter::{level_roughness, mip_chain, prefilter_specular};
+    let chain = mip_chain(&CubeMap::from_fn(512, smooth_light));
+    let rough = level_roughness(chain.len());
+    for (k, level) in chain.iter().enumerate() {
+        for src in k..chain.len() {
+            let t = Instant::now();
+            let _ = prefilter_specular(&chain[src], level.res, rough[k], 0.95);
+            println!("level {k} ({}², r={:.3}) from {}²: {:.3} s", level.res, rough[k], chain[src].res, t.elapsed().as_secs_f64());
+            if t.elapsed().as_secs_f64() < 0.05 {
+                break;
+            }
+        }
     }
 }

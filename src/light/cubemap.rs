@@ -45,8 +45,12 @@ pub fn face_dir(face: usize, s: f32, t: f32) -> Vec3 {
 }
 
 /// The face a direction hits and its face coordinates (s, t) ∈ [−1, 1]².
-/// Ties go to x, then y, then z. A zero direction maps to the centre of +z.
+/// Ties go to x, then y, then z. A zero or non-finite direction maps to the centre of +z, so a
+/// stray NaN normal cannot index outside the map.
 pub fn dir_to_face(d: Vec3) -> (usize, f32, f32) {
+    if !d.is_finite() {
+        return (4, 0.0, 0.0);
+    }
     let a = d.abs();
     if a.x >= a.y && a.x >= a.z && a.x > 0.0 {
         if d.x > 0.0 {
@@ -69,6 +73,18 @@ pub fn dir_to_face(d: Vec3) -> (usize, f32, f32) {
     } else {
         (4, 0.0, 0.0)
     }
+}
+
+/// The face a direction hits and its texture coordinates (u, v) ∈ [0, 1]² (u along columns, v
+/// along rows): u = (s+1)/2, v = (t+1)/2 of [`dir_to_face`].
+pub fn dir_to_face_uv(d: Vec3) -> (usize, f32, f32) {
+    let (face, s, t) = dir_to_face(d);
+    (face, 0.5 * (s + 1.0), 0.5 * (t + 1.0))
+}
+
+/// Unit direction of texture coordinates (u, v) on `face` (inverse of [`dir_to_face_uv`]).
+pub fn face_uv_to_dir(face: usize, u: f32, v: f32) -> Vec3 {
+    face_dir(face, 2.0 * u - 1.0, 2.0 * v - 1.0).normalize()
 }
 
 /// Face coordinate of a texel centre.
@@ -212,7 +228,7 @@ impl CubeMap {
 
     /// Next mip level: 2×2 texel averages (resolution halves; `res` must be even).
     pub fn downsample(&self) -> CubeMap {
-        assert!(self.res >= 2 && self.res % 2 == 0, "cannot halve a cube map of resolution {}", self.res);
+        assert!(self.res >= 2 && self.res.is_multiple_of(2), "cannot halve a cube map of resolution {}", self.res);
         let r = self.res / 2;
         let data = (0..6 * r * r)
             .into_par_iter()
@@ -299,6 +315,9 @@ mod tests {
             let (f, s, t) = dir_to_face(d);
             assert!(s.abs() <= 1.0 && t.abs() <= 1.0);
             assert!(face_dir(f, s, t).normalize().distance(d) < 1e-5);
+            let (f2, u, v) = dir_to_face_uv(d);
+            assert!(f2 == f && (0.0..=1.0).contains(&u) && (0.0..=1.0).contains(&v));
+            assert!(face_uv_to_dir(f2, u, v).distance(d) < 1e-5);
         }
         for res in [1, 3, 8] {
             let map = CubeMap::constant(res, Vec3::ZERO);

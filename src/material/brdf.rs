@@ -227,11 +227,26 @@ mod tests {
 
     #[test]
     fn lambert_white_furnace_gives_the_radiance_back() {
+        // kd = 1, m = 0 under constant L: ∫ diffuse dω = L for any normal and view. The integral
+        // runs over the whole world sphere; each direction goes to the shading frame of the normal.
         let p = params(Vec3::ONE, 0.5, 0.0);
         let radiance = 2.5f64;
-        for wo in [Vec3::Z, Vec3::new(0.6, 0.0, 0.8), Vec3::new(-0.3, 0.5, 0.2).normalize()] {
-            let out = hemisphere_integral(400, 200, |wi| radiance * eval(&p, wo, wi).diffuse.x as f64);
-            assert!((out - radiance).abs() < 2e-3 * radiance, "wo {wo}: {out}");
+        let normals = [Vec3::Z, -Vec3::Z, Vec3::X, Vec3::new(0.3, -0.5, 0.81).normalize(), Vec3::new(-0.7, 0.7, -0.1).normalize()];
+        let (n_theta, n_phi) = (800usize, 400usize);
+        for n in normals {
+            let frame = crate::math::Frame::from_normal(n);
+            let wo = frame.to_local((n + 0.4 * frame.s).normalize());
+            let mut out = 0.0f64;
+            for a in 0..n_theta {
+                let theta = std::f64::consts::PI * (a as f64 + 0.5) / n_theta as f64;
+                for b in 0..n_phi {
+                    let phi = 2.0 * std::f64::consts::PI * (b as f64 + 0.5) / n_phi as f64;
+                    let wi = Vec3::new((theta.sin() * phi.cos()) as f32, (theta.sin() * phi.sin()) as f32, theta.cos() as f32);
+                    let dw = theta.sin() * (std::f64::consts::PI / n_theta as f64) * (2.0 * std::f64::consts::PI / n_phi as f64);
+                    out += radiance * eval(&p, wo, frame.to_local(wi)).diffuse.x as f64 * dw;
+                }
+            }
+            assert!((out - radiance).abs() < 2e-3 * radiance, "normal {n}: {out}");
         }
     }
 
