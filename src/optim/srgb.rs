@@ -9,10 +9,12 @@ use super::tape::{apply, Kernel, Real};
 const KNEE: f64 = 0.003_130_8;
 
 /// Value and derivative of the encoding curve at `x` (negative input encodes to 0, slope 0).
+/// At exactly 0 the slope is the right-hand one (12.92): after a `clamp(·, 0, ·)`, whose candle
+/// backward gives ½ at the tie, the chain then equals the central difference there.
 #[inline]
 pub fn srgb_encode_with_slope<T: Real>(x: T) -> (T, T) {
     let knee = T::from_f64(KNEE);
-    if x <= T::zero() {
+    if x < T::zero() {
         (T::zero(), T::zero())
     } else if x <= knee {
         let s = T::from_f64(12.92);
