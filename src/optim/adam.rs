@@ -59,8 +59,10 @@ pub struct GroupConfig {
     pub eps: f64,
     /// The gradient is multiplied by this before the update (light: 64 in NVDiffRecMC).
     pub grad_scale: f64,
-    /// Clamp after each step, e.g. (0, 1) for kd.
-    pub clamp: Option<(f64, f64)>,
+    /// Clamp after each step: `(lo, hi)` per channel of the last dimension (one entry = the same
+    /// range for every element, e.g. kd ∈ [0, 1]; three entries for ks [H, W, 3] =
+    /// (occlusion, roughness, metallic) ranges).
+    pub clamp: Option<(Vec<f64>, Vec<f64>)>,
 }
 
 impl GroupConfig {
@@ -69,7 +71,12 @@ impl GroupConfig {
         GroupConfig { name: name.into(), lr, beta1: 0.9, beta2: 0.999, eps: 1e-8, grad_scale: 1.0, clamp: None }
     }
     pub fn with_clamp(mut self, lo: f64, hi: f64) -> Self {
-        self.clamp = Some((lo, hi));
+        self.clamp = Some((vec![lo], vec![hi]));
+        self
+    }
+    /// Per-channel ranges over the last dimension (see `clamp`).
+    pub fn with_channel_clamp(mut self, lo: &[f64], hi: &[f64]) -> Self {
+        self.clamp = Some((lo.to_vec(), hi.to_vec()));
         self
     }
     pub fn with_grad_scale(mut self, s: f64) -> Self {
@@ -108,8 +115,23 @@ impl Adam {
 
     /// Adds a group; its tensors must be contiguous f32 or f64 CPU `Var`s.
     pub fn add_group(&mut self, config: GroupConfig, vars: Vec<Var>) -> anyhow::Result<()> {
+        if let Some((lo, hi)) = &config.clamp {
+            if lo.is_empty() || lo.len() != hi.len() || lo.iter().zip(hi).any(|(l, h)| !(l <= h)) {
+                bail!("Adam group '{}': clamp ranges {lo:?} .. {hi:?} are empty, unequal in length or inverted", config.name);
+            }
+        }
         let mut slots = Vec::with_capacity(vars.len());
         for (i, var) in vars.into_iter().enumerate() {
+            if let Some((lo, _)) = &config.clamp {
+                if lo.len() > 1 && var.dims().last() != Some(&lo.len()) {
+                    bail!(
+                        "Adam group '{}': tensor {i} of shape {:?} does not end in the {} clamp channels",
+                        config.name,
+                        var.dims(),
+                        lo.len()
+                    );
+                }
+            }
             let n = var.elem_count();
             let moments = match var.dtype() {
                 DType::F32 => Moments::F32 { m: vec![0.0; n], v: vec![0.0; n] },
@@ -150,7 +172,7 @@ impl Adam {
                     beta2: cfg.beta2,
                     eps: cfg.eps,
                     grad_scale: cfg.grad_scale,
-                    clamp: cfg.clamp,
+                    clamp: cfg.clamp.as_ref(),
                     step: slot.steps,
                     moments: RefCell::new(&mut slot.moments),
                 };
@@ -172,7 +194,7 @@ struct AdamUpdate<'a> {
     beta2: f64,
     eps: f64,
     grad_scale: f64,
-    clamp: Option<(f64, f64)>,
+    clamp: Option<&'a (Vec<f64>, Vec<f64>)>,
     step: u64,
     moments: RefCell<&'a mut Moments>,
 }
@@ -187,17 +209,23 @@ impl AdamUpdate<'_> {
         let inv_sqrt_bc2 = T::from_f64(1.0 / bc2.sqrt());
         let (b1, b2) = (T::from_f64(self.beta1), T::from_f64(self.beta2));
         let (one, eps, scale) = (T::one(), T::from_f64(self.eps), T::from_f64(self.grad_scale));
-        let (lo, hi) = match self.clamp {
-            Some((lo, hi)) => (T::from_f64(lo), T::from_f64(hi)),
-            None => (T::from_f64(f64::NEG_INFINITY), T::from_f64(f64::INFINITY)),
+        let (lo, hi): (Vec<T>, Vec<T>) = match self.clamp {
+            Some((lo, hi)) => (lo.iter().map(|&v| T::from_f64(v)).collect(), hi.iter().map(|&v| T::from_f64(v)).collect()),
+            None => (vec![T::from_f64(f64::NEG_INFINITY)], vec![T::from_f64(f64::INFINITY)]),
         };
-        p.par_iter_mut().zip(g.par_iter()).zip(m.par_iter_mut().zip(v.par_iter_mut())).with_min_len(4096).for_each(
-            |((p, &g), (m, v))| {
-                let g = g * scale;
-                *m = b1 * *m + (one - b1) * g;
-                *v = b2 * *v + (one - b2) * g * g;
-                let np = *p - step_size * *m / (v.sqrt() * inv_sqrt_bc2 + eps);
-                *p = np.fmax(lo).fmin(hi);
+        // Blocks are whole multiples of the channel count, so element k of a block has channel k mod nc.
+        let nc = lo.len();
+        let block = nc * 4096usize.div_ceil(nc);
+        p.par_chunks_mut(block).zip(g.par_chunks(block)).zip(m.par_chunks_mut(block).zip(v.par_chunks_mut(block))).for_each(
+            |((p, g), (m, v))| {
+                for (k, (((p, &g), m), v)) in p.iter_mut().zip(g).zip(m.iter_mut()).zip(v.iter_mut()).enumerate() {
+                    let g = g * scale;
+                    *m = b1 * *m + (one - b1) * g;
+                    *v = b2 * *v + (one - b2) * g * g;
+                    let np = *p - step_size * *m / (v.sqrt() * inv_sqrt_bc2 + eps);
+                    let c = k % nc;
+                    *p = np.fmax(lo[c]).fmin(hi[c]);
+                }
             },
         );
     }
@@ -292,6 +320,27 @@ mod tests {
         for k in 0..4 {
             assert!((v[k] - want[k]).abs() < 1e-3, "{v:?}");
         }
+        Ok(())
+    }
+
+    #[test]
+    fn per_channel_clamp_holds_for_ks_like_tensors() -> anyhow::Result<()> {
+        let dev = Device::Cpu;
+        // [N, 3] = (occlusion, roughness, metallic), pushed far outside every range.
+        let ks = Var::from_tensor(&Tensor::new(&[[0.5f32, 0.5, 0.5]], &dev)?.repeat((5000, 1))?)?;
+        let mut adam = Adam::new(LrSchedule::default());
+        adam.add_group(GroupConfig::new("ks", 0.5).with_channel_clamp(&[0.0, 0.08, 0.0], &[0.0, 1.0, 1.0]), vec![ks.clone()])?;
+        for sign in [1.0f64, -1.0] {
+            for _ in 0..40 {
+                let loss = (ks.as_tensor().sum_all()? * sign)?;
+                adam.step(&loss.backward()?)?;
+            }
+            let v = ks.as_tensor().to_vec2::<f32>()?;
+            let want = if sign > 0.0 { [0.0, 0.08, 0.0] } else { [0.0, 1.0, 1.0] };
+            assert!(v.iter().all(|row| row.iter().zip(&want).all(|(a, b)| (a - b).abs() < 1e-6)), "{:?}", &v[..2]);
+        }
+        let bad = GroupConfig::new("ks", 0.1).with_channel_clamp(&[0.0, 0.0], &[1.0, 1.0]);
+        assert!(Adam::new(LrSchedule::default()).add_group(bad, vec![ks]).is_err());
         Ok(())
     }
 
