@@ -96,19 +96,69 @@ pub trait Kernel: Send + Sync + 'static {
     ) -> Result<()>;
 }
 
-/// Applies `kernel` to 1–3 tensors (all f32 or all f64, on the CPU) and records it on the tape.
+/// Applies `kernel` to its input tensors (all f32 or all f64, on the CPU) and records it on the
+/// tape. candle's custom ops take 1–3 tensors; with more, the inputs are flattened and
+/// concatenated into one tensor (one copy; candle's `cat` backward splits the gradient again) and
+/// the kernel still sees them separately; then every input's adjoint is computed.
 pub fn apply<K: Kernel>(kernel: K, inputs: &[&Tensor]) -> Result<Tensor> {
-    let kernel = Arc::new(kernel);
     let c: Vec<Tensor> = inputs.iter().map(|t| t.contiguous()).collect::<Result<_>>()?;
     match c.as_slice() {
-        [a] => a.apply_op1(KernelOp(kernel)),
-        [a, b] => a.apply_op2(b, KernelOp(kernel)),
-        [a, b, d] => a.apply_op3(b, d, KernelOp(kernel)),
-        _ => Err(candle_core::Error::Msg(format!(
-            "{}: a kernel takes 1 to 3 tensors, got {}",
-            kernel.name(),
-            inputs.len()
-        ))),
+        [] => Err(candle_core::Error::Msg(format!("{}: no input tensors", kernel.name()))),
+        [a] => a.apply_op1(KernelOp(Arc::new(kernel))),
+        [a, b] => a.apply_op2(b, KernelOp(Arc::new(kernel))),
+        [a, b, d] => a.apply_op3(b, d, KernelOp(Arc::new(kernel))),
+        many => {
+            let shapes: Vec<Vec<usize>> = many.iter().map(|t| t.dims().to_vec()).collect();
+            let flat: Vec<Tensor> = many.iter().map(|t| t.flatten_all()).collect::<Result<_>>()?;
+            let packed = Tensor::cat(&flat, 0)?;
+            packed.apply_op1(KernelOp(Arc::new(Packed { inner: kernel, shapes })))
+        }
+    }
+}
+
+/// A kernel with more than three inputs, run on their concatenation.
+struct Packed<K> {
+    inner: K,
+    shapes: Vec<Vec<usize>>,
+}
+
+impl<K: Kernel> Packed<K> {
+    fn sizes(&self) -> impl Iterator<Item = usize> + '_ {
+        self.shapes.iter().map(|s| s.iter().product())
+    }
+    fn shape_refs(&self) -> Vec<&[usize]> {
+        self.shapes.iter().map(|s| s.as_slice()).collect()
+    }
+    fn split<'a, T>(&self, mut data: &'a [T]) -> Vec<&'a [T]> {
+        self.sizes()
+            .map(|n| {
+                let (head, tail) = data.split_at(n);
+                data = tail;
+                head
+            })
+            .collect()
+    }
+}
+
+impl<K: Kernel> Kernel for Packed<K> {
+    fn name(&self) -> &'static str {
+        self.inner.name()
+    }
+    fn output_shape(&self, _: &[&[usize]]) -> Result<Vec<usize>> {
+        self.inner.output_shape(&self.shape_refs())
+    }
+    fn forward<T: Real>(&self, x: &[&[T]], _: &[&[usize]], out: &mut [T]) -> Result<()> {
+        self.inner.forward(&self.split(x[0]), &self.shape_refs(), out)
+    }
+    fn backward<T: Real>(&self, x: &[&[T]], _: &[&[usize]], g: &[T], grads: &mut [Option<&mut [T]>]) -> Result<()> {
+        let Some(mut all) = grads[0].take() else { return Ok(()) };
+        let mut parts: Vec<Option<&mut [T]>> = Vec::with_capacity(self.shapes.len());
+        for n in self.sizes() {
+            let (head, tail) = std::mem::take(&mut all).split_at_mut(n);
+            parts.push(Some(head));
+            all = tail;
+        }
+        self.inner.backward(&self.split(x[0]), &self.shape_refs(), g, &mut parts)
     }
 }
 
@@ -322,6 +372,49 @@ mod tests {
             assert_eq!(ga, vec![5.0, 0.0, 0.0]);
             // b is a constant: no gradient is computed or stored for it.
             assert!(grads.get(&b).is_none());
+        }
+        Ok(())
+    }
+
+    /// y = Σ_i c_i·x_i over four inputs (more than candle's three): packed path.
+    struct WeightedSum4;
+    impl Kernel for WeightedSum4 {
+        fn name(&self) -> &'static str {
+            "weighted_sum4"
+        }
+        fn output_shape(&self, s: &[&[usize]]) -> Result<Vec<usize>> {
+            Ok(s[0].to_vec())
+        }
+        fn forward<T: Real>(&self, x: &[&[T]], _: &[&[usize]], out: &mut [T]) -> Result<()> {
+            for (i, xi) in x.iter().enumerate() {
+                let c = T::from_f64(i as f64 + 1.0);
+                out.iter_mut().zip(xi.iter()).for_each(|(o, &v)| *o += c * v);
+            }
+            Ok(())
+        }
+        fn backward<T: Real>(&self, _: &[&[T]], _: &[&[usize]], g: &[T], grads: &mut [Option<&mut [T]>]) -> Result<()> {
+            for (i, gi) in grads.iter_mut().enumerate() {
+                if let Some(gi) = gi.as_deref_mut() {
+                    let c = T::from_f64(i as f64 + 1.0);
+                    gi.iter_mut().zip(g).for_each(|(o, &v)| *o += c * v);
+                }
+            }
+            Ok(())
+        }
+    }
+
+    #[test]
+    fn more_than_three_inputs_are_packed_transparently() -> Result<()> {
+        let vars: Vec<Var> =
+            (0..4).map(|i| Var::from_tensor(&Tensor::new(&[[i as f32, 1.0], [2.0, 3.0]], &Device::Cpu)?)).collect::<Result<_>>()?;
+        let refs: Vec<&Tensor> = vars.iter().map(|v| v.as_tensor()).collect();
+        let y = apply(WeightedSum4, &refs)?;
+        assert_eq!(y.dims(), &[2, 2]);
+        assert_eq!(y.to_vec2::<f32>()?[0], vec![1.0 * 0.0 + 2.0 * 1.0 + 3.0 * 2.0 + 4.0 * 3.0, 10.0]);
+        let g = y.sum_all()?.backward()?;
+        for (i, v) in vars.iter().enumerate() {
+            let gi = g.get(v.as_tensor()).expect("grad").to_vec2::<f32>()?;
+            assert_eq!(gi, vec![vec![i as f32 + 1.0; 2]; 2]);
         }
         Ok(())
     }
