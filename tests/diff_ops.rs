@@ -56,7 +56,7 @@ fn texture_lookup_texel_centres_and_wrap_seam() -> anyhow::Result<()> {
         }
     }
     let uv: Arc<[[f32; 2]]> = uv.into();
-    let rep = check_gradient(|x| sample_bilinear(&x[0], &uv), &[tex.clone()], EPS, TOL)?;
+    let rep = check_gradient(|x| sample_bilinear(&x[0], &uv), std::slice::from_ref(&tex), EPS, TOL)?;
     println!("texture centres/seam: {rep}");
     // The adjoint at texel centres is exactly a copy of the output gradient into that texel.
     let var = Var::from_tensor(&tex)?;
@@ -129,7 +129,7 @@ fn image_loss_black_targets_black_renders_and_huge_hdr() -> anyhow::Result<()> {
     let render = Tensor::from_vec(render, (h, w, 3), &Device::Cpu)?;
     let l = image_loss(&render, None, &target)?.to_scalar::<f64>()?;
     assert!(l.is_finite());
-    let rep = check_gradient(|x| image_loss(&x[0], None, &target), &[render.clone()], 1e-7, TOL)?;
+    let rep = check_gradient(|x| image_loss(&x[0], None, &target), std::slice::from_ref(&render), 1e-7, TOL)?;
     println!("image loss hard cases: {rep}");
     // f32 with 1e5..1e30 stays finite, gradient too.
     let v = Var::from_tensor(&(render.to_dtype(DType::F32)? * 1e25)?)?;

@@ -116,7 +116,7 @@ impl Adam {
     /// Adds a group; its tensors must be contiguous f32 or f64 CPU `Var`s.
     pub fn add_group(&mut self, config: GroupConfig, vars: Vec<Var>) -> anyhow::Result<()> {
         if let Some((lo, hi)) = &config.clamp {
-            if lo.is_empty() || lo.len() != hi.len() || lo.iter().zip(hi).any(|(l, h)| !(l <= h)) {
+            if lo.is_empty() || lo.len() != hi.len() || lo.iter().zip(hi).any(|(l, h)| l.partial_cmp(h).is_none_or(|o| o.is_gt())) {
                 bail!("Adam group '{}': clamp ranges {lo:?} .. {hi:?} are empty, unequal in length or inverted", config.name);
             }
         }
