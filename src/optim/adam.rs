@@ -164,6 +164,9 @@ impl Adam {
             let cfg = &group.config;
             for (i, slot) in group.slots.iter_mut().enumerate() {
                 let Some(grad) = grads.get(slot.var.as_tensor()) else { continue };
+                if grad.dims() != slot.var.dims() {
+                    bail!("Adam group '{}', tensor {i}: gradient {:?} does not match parameter {:?}", cfg.name, grad.dims(), slot.var.dims());
+                }
                 let grad = grad.to_dtype(slot.var.dtype())?.contiguous()?;
                 slot.steps += 1;
                 let update = AdamUpdate {

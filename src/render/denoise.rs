@@ -10,7 +10,8 @@
 //! The normalised weights are computed once per set of guides (`CrossBilateral::new`) and both
 //! passes read them through the same window walk; the backward is a gather over q's window (the
 //! window is symmetric), so it is as parallel and race-free as the forward.
-//! Pixels without a surface pass through unchanged and never mix with covered ones.
+//! Pixels without a surface pass through unchanged and never mix with covered ones. Taps whose
+//! normal factor is below 1e-12 are dropped (exactly 0), which skips their exp.
 //!
 //! NVDiffRecMC uses σ = 2 and a 23×23 window (radius 2⌈2.5σ⌉+1 = 11); taps beyond 3σ weigh < 1.2 %
 //! of the centre, so the default radius here is ⌈3σ⌉ = 6 (169 taps instead of 529).
@@ -35,7 +36,7 @@ pub struct BilateralParams {
     /// Window radius in pixels.
     pub radius: usize,
     /// Exponent of the normal similarity.
-    pub normal_power: i32,
+    pub normal_power: u32,
 }
 
 impl Default for BilateralParams {
@@ -155,11 +156,28 @@ fn raw_weight(g: &DenoiseGuides, p: &BilateralParams, t: &WindowTables, centre: 
         return 1.0;
     }
     let cos = g.normal[centre].dot(g.normal[tap]).clamp(FLT_EPS as f32, 1.0);
-    let w_normal = cos.powi(p.normal_power);
+    let w_normal = powi_by_squaring(cos, p.normal_power);
+    if w_normal < 1e-12 {
+        return 0.0; // below f32 resolution of any sum it joins; skips the exp
+    }
     let dz = (g.depth[tap] - g.depth[centre]).abs();
     let depth_exponent = dz / (g.depth_slope[centre] * t.dist[off]).max(FLT_EPS as f32);
     // One exp for the spatial and the depth factor.
     w_normal * (-(t.spatial_exponent[off] + depth_exponent)).exp()
+}
+
+/// x^n for n ≥ 0, inlined (the generic `powi` is a library call per tap).
+#[inline]
+fn powi_by_squaring(mut x: f32, mut n: u32) -> f32 {
+    let mut r = 1.0;
+    while n > 0 {
+        if n & 1 == 1 {
+            r *= x;
+        }
+        x *= x;
+        n >>= 1;
+    }
+    r
 }
 
 impl CrossBilateral {
