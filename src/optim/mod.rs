@@ -11,6 +11,7 @@ pub mod smoothness;
 pub mod srgb;
 pub mod tape;
 pub mod texture;
+pub mod weights;
 
 pub use adam::{Adam, GroupConfig, LrSchedule};
 pub use gradcheck::{check_gradient, check_gradient_with, GradCheckOptions, GradReport};
@@ -21,3 +22,4 @@ pub use smoothness::smoothness_regularizer;
 pub use srgb::srgb_encode;
 pub use tape::{apply, scatter_add_banded, Kernel, Real};
 pub use texture::{jitter_uv, sample_bilinear, BilinearWrap};
+pub use weights::RegularizerWeights;

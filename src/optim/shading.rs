@@ -1,4 +1,4 @@
-//! The shading ("monochrome lighting") regulariser of NVDiffRecMC. It assumes roughly white light:
+//! The "monochrome shading" regulariser of NVDiffRecMC (its `shading_loss`). It assumes roughly white light:
 //! the luminance of the demodulated shading (diffuse + specular light) should explain the target's
 //! value channel (max of RGB), weighted by the diffuse share; and specular light should stay small
 //! relative to diffuse light. It steers colour into the material (kd) instead of the light.

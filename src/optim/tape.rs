@@ -5,6 +5,14 @@
 //! it can be a rayon loop; [`apply`] wraps it as a candle `CustomOp1/2/3`. The adjoint writes into
 //! zeroed gradient buffers; [`scatter_add_banded`] gives scatter-style adjoints (texture lookups)
 //! a race-free, deterministic way to accumulate in parallel.
+//!
+//! Conventions for renderer kernels:
+//! - Fixed data (G-buffer, UVs, guides, seeds) lives in the kernel struct, not in tensors.
+//! - Random numbers: keep the seed in the struct and draw per-pixel streams
+//!   (`rng::Sampler::new(seed, pixel)`) in both passes, so the backward replays the forward's samples.
+//! - State the backward needs and the forward computes (e.g. shadow-ray visibility) is computed in
+//!   the kernel's constructor, or recomputed in the backward: `Kernel::forward` takes `&self`.
+//! - Float work inside a kernel may be done in f64 whatever `T` is; checks run the whole op in f64.
 
 use std::sync::Arc;
 
