@@ -6,7 +6,7 @@ use std::time::Instant;
 
 use candle_core::{Device, Tensor, Var};
 use candle_nn::Optimizer;
-use reconstruct::optim::{image_loss, sample_bilinear, Adam, GroupConfig, LossTarget, LrSchedule};
+use reconstruct::optim::{build_pyramid, image_loss, sample_bilinear, sample_trilinear, Adam, GroupConfig, LossTarget, LrSchedule};
 use reconstruct::render::denoise::{BilateralParams, CrossBilateral, DenoiseGuides};
 use reconstruct::rng::Sampler;
 
@@ -35,6 +35,15 @@ pub fn run(allocator: &str) -> anyhow::Result<()> {
         Ok(())
     })?;
     println!("texture sample fwd+bwd (1024² tex, 256² lookups): {ms:8.2} ms");
+    let lod: Arc<[f32]> = (0..256 * 256).map(|_| 2.0 + s.next_f32()).collect::<Vec<_>>().into();
+    let ms = time_ms(10, || {
+        let (pyr, levels) = build_pyramid(tex.as_tensor())?;
+        let l = (sample_trilinear(&pyr, &levels, &uv, &lod)? * &w)?.sum_all()?;
+        let g = l.backward()?;
+        anyhow::ensure!(g.get(tex.as_tensor()).is_some());
+        Ok(())
+    })?;
+    println!("mip pyramid + trilinear fwd+bwd (same sizes):     {ms:8.2} ms");
 
     // Image loss on a 256² render, forward + backward.
     let render = Var::from_tensor(&Tensor::rand(0f32, 2.0, (256, 256, 3), &dev)?)?;
