@@ -428,6 +428,15 @@ mod tests {
     }
 
     #[test]
+    fn no_grad_application_leaves_nothing_on_the_tape() -> Result<()> {
+        let a = Var::new(&[1.0f32, 2.0], &Device::Cpu)?;
+        let y = apply_no_grad(MulAddSquare, &[a.as_tensor(), a.as_tensor()])?;
+        assert_eq!(y.to_vec1::<f32>()?, vec![2.0, 8.0]);
+        assert!(!y.track_op());
+        Ok(())
+    }
+
+    #[test]
     fn banded_scatter_matches_serial_and_any_band_count() {
         let n = 1000;
         let targets: Vec<usize> = (0..n).map(|i| (i * 7919) % 97).collect();
