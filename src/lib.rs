@@ -8,6 +8,7 @@ pub mod image;
 pub mod light;
 pub mod material;
 pub mod math;
+pub mod optim;
 pub mod prior;
 pub mod render;
 pub mod rng;

@@ -1,5 +1,6 @@
 //! Renderers: G-buffer, split-sum shading, Monte Carlo shading, and the effects a scene switches on.
 
+pub mod denoise;
 pub mod effects;
 pub mod gbuffer;
 pub mod montecarlo;

@@ -1,0 +1,12 @@
+//! Milliseconds per step of the optimisation building blocks, with mimalloc as the allocator.
+//! `cargo run --release --example bench_optim` (and `bench_optim_sysalloc` for the system allocator).
+
+#[global_allocator]
+static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
+
+#[path = "common/bench_optim_body.rs"]
+mod body;
+
+fn main() -> anyhow::Result<()> {
+    body::run("mimalloc")
+}
