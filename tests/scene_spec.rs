@@ -2,7 +2,8 @@
 
 use std::path::PathBuf;
 
-use reconstruct::scene::{crate_dir, shared_dir, EffectMode, SceneSpec};
+use reconstruct::render::effects::Switch;
+use reconstruct::scene::{crate_dir, shared_dir, SceneSpec};
 
 #[test]
 fn the_hotdog_spec_names_the_shared_data_and_the_nerfactor_protocol() {
@@ -15,7 +16,7 @@ fn the_hotdog_spec_names_the_shared_data_and_the_nerfactor_protocol() {
     assert_eq!(spec.test_probes.names, ["city", "courtyard", "forest", "interior", "night", "studio", "sunrise", "sunset"]);
     assert_eq!(spec.test_probes.strength, 1.0);
     assert_eq!(spec.gt_dir(), Some(spec.data_dir.join("gt")));
-    assert_eq!((spec.effects.shadows, spec.effects.specular), (EffectMode::Auto, EffectMode::Auto));
+    assert_eq!((spec.effects.shadows, spec.effects.specular), (Switch::Auto, Switch::Auto));
     // By path too, and the same result.
     assert_eq!(SceneSpec::find(crate_dir().join("scenes/nerfactor_hotdog.toml").to_str().unwrap()).unwrap(), spec);
 

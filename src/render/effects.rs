@@ -37,6 +37,7 @@ impl FromStr for Switch {
 
 /// What the scene asks for, per effect.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(deny_unknown_fields)]
 pub struct EffectSwitches {
     #[serde(default)]
     pub shadows: Switch,

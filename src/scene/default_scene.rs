@@ -3,6 +3,7 @@
 //! first use and cached. A fresh clone runs without `../shared/`.
 
 use std::path::{Path, PathBuf};
+
 use std::sync::Arc;
 
 use anyhow::{Context, Result};
@@ -121,12 +122,16 @@ pub fn fixture_probe_dir() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/probes")
 }
 
-/// The rendered default dataset under `cache_root`, made on first use (about a minute on 2 cores).
-pub fn ensure_dataset(cache_root: &Path) -> Result<PathBuf> {
-    let dir = cache_root.join(format!("default_scene_v{VERSION}"));
+/// Render the default dataset into `dir` unless a complete copy of this version is there already
+/// (about a minute on 2 cores). An older version's folder is replaced.
+pub fn ensure_dataset(dir: &Path) -> Result<()> {
     let stamp = dir.join("COMPLETE");
-    if stamp.exists() {
-        return Ok(dir);
+    let expected = format!("default scene v{VERSION}\n");
+    if std::fs::read_to_string(&stamp).ok().as_deref() == Some(expected.as_str()) {
+        return Ok(());
+    }
+    if dir.exists() {
+        std::fs::remove_dir_all(dir).with_context(|| format!("cannot replace the stale default scene in {}", dir.display()))?;
     }
     eprintln!("rendering the embedded default scene into {} (first use only)...", dir.display());
     let probe_dir = fixture_probe_dir();
@@ -138,7 +143,6 @@ pub fn ensure_dataset(cache_root: &Path) -> Result<PathBuf> {
         })
         .collect::<Result<Vec<_>>>()?;
     let settings = RenderSettings { mode: ShadingMode::MonteCarlo, spp: 64, supersample: 2, seed: 7, effects: Effects::ALL };
-    write_nerfactor(&scene(probes), &dir, &settings)?;
-    std::fs::write(&stamp, format!("default scene v{VERSION}\n")).with_context(|| format!("cannot write {}", stamp.display()))?;
-    Ok(dir)
+    write_nerfactor(&scene(probes), dir, &settings)?;
+    std::fs::write(&stamp, expected).with_context(|| format!("cannot write {}", stamp.display()))
 }

@@ -10,4 +10,4 @@ pub mod synthetic;
 pub use camera::Camera;
 pub use dataset::{Dataset, Layout, Split, View, ViewMetadata};
 pub use probe::Probe;
-pub use spec::{crate_dir, shared_dir, EffectMode, Effects, SceneSpec};
+pub use spec::{cache_dir, crate_dir, shared_dir, SceneSpec};

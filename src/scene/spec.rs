@@ -9,6 +9,8 @@ use std::path::{Path, PathBuf};
 use anyhow::{anyhow, bail, Context, Result};
 use serde::Deserialize;
 
+pub use crate::render::effects::{EffectSwitches, Switch};
+
 use super::dataset::Dataset;
 use super::probe::Probe;
 
@@ -21,32 +23,20 @@ pub fn crate_dir() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR"))
 }
 
+/// Where generated data (the default scene) is cached: `$RECONSTRUCT_CACHE`, else `<crate>/.cache`.
+pub fn cache_dir() -> PathBuf {
+    match std::env::var_os("RECONSTRUCT_CACHE") {
+        Some(d) if !d.is_empty() => PathBuf::from(d),
+        _ => crate_dir().join(".cache"),
+    }
+}
+
 /// The shared data folder: `$RECONSTRUCT_SHARED_DIR`, else `<crate>/../shared`.
 pub fn shared_dir() -> PathBuf {
     match std::env::var_os("RECONSTRUCT_SHARED_DIR") {
         Some(d) if !d.is_empty() => PathBuf::from(d),
         _ => crate_dir().join("..").join("shared"),
     }
-}
-
-/// Whether a light-transport effect is simulated.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Deserialize, Default)]
-#[serde(rename_all = "lowercase")]
-pub enum EffectMode {
-    /// Decided from the data (the decision and its reason are printed).
-    #[default]
-    Auto,
-    On,
-    Off,
-}
-
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Deserialize, Default)]
-#[serde(deny_unknown_fields)]
-pub struct Effects {
-    #[serde(default)]
-    pub shadows: EffectMode,
-    #[serde(default)]
-    pub specular: EffectMode,
 }
 
 /// A probe file and its strength.
@@ -78,7 +68,9 @@ pub struct SceneSpec {
     pub test_probes: TestProbes,
     /// Ground-truth folder as written: relative paths are inside the data folder.
     pub ground_truth: Option<PathBuf>,
-    pub effects: Effects,
+    pub effects: EffectSwitches,
+    /// Set when the project makes the data itself (`"default"`: the embedded default scene).
+    pub generator: Option<String>,
 }
 
 #[derive(Deserialize)]
@@ -92,7 +84,8 @@ struct RawSpec {
     test_probes: RawTestProbes,
     ground_truth: Option<RawGroundTruth>,
     #[serde(default)]
-    effects: Effects,
+    effects: EffectSwitches,
+    generator: Option<String>,
 }
 
 #[derive(Deserialize)]
@@ -140,7 +133,9 @@ fn default_test_probe_folders() -> Vec<String> {
 
 /// Expand `{shared}` / `{crate}`; resolve what is still relative against `base`.
 fn resolve(path: &str, base: &Path) -> PathBuf {
-    let expanded = if let Some(rest) = path.strip_prefix("{shared}") {
+    let expanded = if let Some(rest) = path.strip_prefix("{cache}") {
+        cache_dir().join(rest.trim_start_matches(['/', '\\']))
+    } else if let Some(rest) = path.strip_prefix("{shared}") {
         shared_dir().join(rest.trim_start_matches(['/', '\\']))
     } else if let Some(rest) = path.strip_prefix("{crate}") {
         crate_dir().join(rest.trim_start_matches(['/', '\\']))
@@ -199,6 +194,7 @@ impl SceneSpec {
             },
             ground_truth: raw.ground_truth.map(|g| PathBuf::from(g.folder)),
             effects: raw.effects,
+            generator: raw.generator,
         })
     }
 
@@ -243,7 +239,13 @@ impl SceneSpec {
         self.ground_truth.as_ref().map(|g| self.data_dir.join(g))
     }
 
+    /// Make the data first when the project generates it (rendered once, then cached).
     pub fn load_dataset(&self) -> Result<Dataset> {
+        match self.generator.as_deref() {
+            None => {}
+            Some("default") => crate::scene::default_scene::ensure_dataset(&self.data_dir)?,
+            Some(other) => bail!("scene {:?}: unknown generator {other:?} (known: \"default\")", self.name),
+        }
         Dataset::load(&self.data_dir).with_context(|| format!("loading the data of scene {:?}", self.name))
     }
 
@@ -291,7 +293,7 @@ mod tests {
         assert_eq!(spec.test_probes.names.len(), 8);
         assert_eq!(spec.test_probes.strength, 1.0);
         assert_eq!(spec.test_probes.folders[1], crate_dir().join("tests/fixtures/probes"));
-        assert_eq!(spec.effects, Effects { shadows: EffectMode::Auto, specular: EffectMode::Auto });
+        assert_eq!(spec.effects, EffectSwitches { shadows: Switch::Auto, specular: Switch::Auto });
         assert!(spec.train_probe.is_none() && spec.gt_dir().is_none());
     }
 
@@ -306,7 +308,7 @@ mod tests {
         let spec = SceneSpec::parse(text, Path::new("/specs"), "x").unwrap();
         assert_eq!(spec.data_dir, shared_dir().join("data/x"));
         assert_eq!(spec.train_probe, Some(ProbeFile { path: "/abs/probe.hdr".into(), strength: 3.0 }));
-        assert_eq!(spec.effects, Effects { shadows: EffectMode::On, specular: EffectMode::Off });
+        assert_eq!(spec.effects, EffectSwitches { shadows: Switch::On, specular: Switch::Off });
         let moved = spec.with_data_dir("/elsewhere");
         assert_eq!(moved.gt_dir(), Some(PathBuf::from("/elsewhere/gt")));
     }
