@@ -5,6 +5,7 @@ pub mod color;
 pub mod eval;
 pub mod geometry;
 pub mod image;
+pub mod jobs;
 pub mod light;
 pub mod material;
 pub mod math;
