@@ -1,1 +1,28 @@
-//! The IDArb network (ICLR 2025) ported to candle.
+//! The IDArb network (ICLR 2025) ported to candle: per-view albedo, normal, metallic and roughness
+//! from N RGBA views. Module names mirror the official modules and weight keys.
+//!
+//! Entry point: [`labels_for_views`]. The parts: [`unet_dr2d_condition`] (UNet-DR2D) built from
+//! [`unet_dr2d_blocks`], [`transformer_dr2d`] (cross-domain / cross-view attention with [`cape`]),
+//! [`resnet`], [`attention`]; [`autoencoder_kl`] (VAE); [`scheduling_ddim`]; [`preprocess`];
+//! [`pipeline_idarbdiffusion`] (sampling loop); [`weights`]; [`labels`] and [`labels_cache`].
+
+pub mod attention;
+pub mod autoencoder_kl;
+pub mod cape;
+pub mod conv;
+pub mod group_norm;
+pub mod labels;
+pub mod labels_cache;
+pub mod pipeline_idarbdiffusion;
+pub mod preprocess;
+pub mod resnet;
+pub mod scheduling_ddim;
+pub mod transformer_dr2d;
+pub mod unet_dr2d_blocks;
+pub mod unet_dr2d_condition;
+pub mod weights;
+
+pub use labels::{labels_for_views, run_network, IdarbOptions, InputEncoding, ViewLabels};
+pub use pipeline_idarbdiffusion::IdarbPipeline;
+pub use preprocess::{default_pose, pose_from_camera_origin};
+pub use weights::{resolve_weights_dir, WeightFiles, NO_WEIGHTS_MESSAGE, WEIGHTS_ENV};
