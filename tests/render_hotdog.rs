@@ -3,7 +3,7 @@
 //! probe orientation against where the bright side and the shadows fall.
 
 use glam::Vec3;
-use reconstruct::eval::metrics::{over_white, psnr};
+use reconstruct::jobs::render::protocol_psnr;
 use reconstruct::geometry::bvh::Bvh;
 use reconstruct::geometry::obj::load_ground_truth;
 use reconstruct::image::Image;
@@ -33,12 +33,6 @@ fn hotdog() -> Option<Hotdog> {
     let bvh = Bvh::build(&mesh);
     let probe = Probe::load(&probe, 3.0).expect("probe 2163 loads").radiance_image();
     Some(Hotdog { dataset, mesh, bvh, probe })
-}
-
-/// PSNR over white in sRGB on pixels with alpha > 0.8 in the target (the relighting protocol).
-fn protocol_psnr(render: &Image, target: &Image) -> f64 {
-    let mask: Vec<bool> = (0..target.pixel_count()).map(|i| target.rgba(i).w > 0.8).collect();
-    psnr(&over_white(render, render), &over_white(target, target), Some(&mask))
 }
 
 /// The probe mirrored left to right (u → 1 − u): the wrong handedness.

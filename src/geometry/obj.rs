@@ -434,7 +434,7 @@ mod tests {
 
     fn tmp_dir(tag: &str) -> PathBuf {
         let d = std::env::temp_dir().join(format!("reconstruct-obj-{tag}-{}", std::process::id()));
-        std::fs::create_dir_all(&d).unwrap();
+        std::fs::create_dir_all(&d).expect("test setup");
         d
     }
 
@@ -454,21 +454,21 @@ mod tests {
         // A 2×2 texture, sRGB-encoded: codes 255 and 0 and 188 (≈ linear 0.5).
         let mut tex = Image::new(2, 2, 3);
         tex.data = vec![1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.5, 0.5, 0.5];
-        save_srgb_texture(&dir.join("t.png"), &tex).unwrap();
+        save_srgb_texture(&dir.join("t.png"), &tex).expect("test setup");
         std::fs::write(
             dir.join("m.mtl"),
             "newmtl A\nKd 0.2 0.4 0.6\nNs 250\nPm 0.25\nnewmtl B\nKd 1 1 1\nPr 0.7\nmap_Kd t.png\n",
         )
-        .unwrap();
+        .expect("test setup");
         // Part `a` has no vt and no vn; part `b` has both.
         std::fs::write(
             dir.join("m.obj"),
             "mtllib m.mtl\no a\nv 0 0 0\nv 1 0 0\nv 0 1 0\nv 1 1 0\nusemtl A\nf 1 2 3\nf 2 4 3\n\
              o b\nv 0 0 1\nv 2 0 1\nv 0 2 1\nvt 0 0\nvt 1 0\nvt 0 1\nvn 0 0 -1\nusemtl B\nf 5/1/1 6/2/1 7/3/1\n",
         )
-        .unwrap();
-        let mesh = load_obj(dir.join("m.obj")).unwrap();
-        mesh.validate().unwrap();
+        .expect("test setup");
+        let mesh = load_obj(dir.join("m.obj")).expect("test setup");
+        mesh.validate().expect("test setup");
         assert_eq!(mesh.parts.len(), 2);
         assert_eq!(mesh.triangles.len(), 3);
         assert!(!mesh.parts[0].has_uv && mesh.parts[1].has_uv);
@@ -497,15 +497,15 @@ mod tests {
         // Object a has no vt; object b's faces say 4/4 although its first vt is vt 1.
         let text = "o a\nv 0 0 0\nv 1 0 0\nv 0 1 0\nf 1//1 2//2 3//3\n\
                     o b\nv 0 0 1\nv 1 0 1\nv 0 1 1\nvt 0.1 0.2\nvt 0.3 0.4\nvt 0.5 0.6\nf 4/4/4 5/5/5 6/6/6\n";
-        let fixed = repair_vt_numbered_like_v(text).unwrap();
+        let fixed = repair_vt_numbered_like_v(text).expect("test setup");
         assert!(fixed.contains("f 4/1/4 5/2/5 6/3/6"), "{fixed}");
         assert!(fixed.contains("f 1//1 2//2 3//3"));
         // A consistent file is left alone.
         let ok = "o b\nv 0 0 1\nv 1 0 1\nv 0 1 1\nvt 0 0\nvt 1 0\nvt 0 1\nf 1/1 2/2 3/3\n";
         assert!(repair_vt_numbered_like_v(ok).is_none());
         let dir = tmp_dir("vt");
-        std::fs::write(dir.join("q.obj"), text).unwrap();
-        let mesh = load_obj(dir.join("q.obj")).unwrap();
+        std::fs::write(dir.join("q.obj"), text).expect("test setup");
+        let mesh = load_obj(dir.join("q.obj")).expect("test setup");
         assert!(!mesh.parts[0].has_uv && mesh.parts[1].has_uv);
         assert_eq!(mesh.uvs[mesh.triangles[1][0] as usize], Vec2::new(0.1, 0.2));
         std::fs::remove_dir_all(&dir).ok();

@@ -175,7 +175,7 @@ mod tests {
     #[test]
     fn non_finite_uv_is_a_clear_error() {
         let uv: Arc<[[f32; 2]]> = vec![[0.1, f32::NAN]].into();
-        let err = sample_bilinear(&texture(2, 2, 1).unwrap(), &uv).unwrap_err().to_string();
+        let err = sample_bilinear(&texture(2, 2, 1).expect("test setup"), &uv).unwrap_err().to_string();
         assert!(err.contains("uv #0"), "{err}");
     }
 }

@@ -292,7 +292,7 @@ mod tests {
     use candle_core::Device;
 
     fn flat_guides(w: usize, h: usize) -> DenoiseGuides {
-        DenoiseGuides::new(w, h, vec![Vec3::Z; w * h], vec![2.0; w * h], vec![true; w * h]).unwrap()
+        DenoiseGuides::new(w, h, vec![Vec3::Z; w * h], vec![2.0; w * h], vec![true; w * h]).expect("test setup")
     }
 
     #[test]
@@ -349,7 +349,7 @@ mod tests {
     #[test]
     fn mismatched_image_is_an_error() {
         let f = CrossBilateral::new(Arc::new(flat_guides(4, 4)), BilateralParams::default());
-        let err = f.apply(&Tensor::zeros((4, 5, 3), candle_core::DType::F32, &Device::Cpu).unwrap()).unwrap_err();
+        let err = f.apply(&Tensor::zeros((4, 5, 3), candle_core::DType::F32, &Device::Cpu).expect("test setup")).unwrap_err();
         assert!(err.to_string().contains("does not match guides"), "{err}");
     }
 }

@@ -3,7 +3,6 @@
 //! first use and cached. A fresh clone runs without `../shared/`.
 
 use std::path::{Path, PathBuf};
-
 use std::sync::Arc;
 
 use anyhow::{Context, Result};
@@ -11,21 +10,20 @@ use glam::{Quat, Vec2, Vec3};
 
 use crate::geometry::primitives::MeshBuilder;
 use crate::geometry::Mesh;
-use crate::image::{io, Image};
+use crate::image::Image;
 use crate::light::latlong;
 use crate::material::{BaseColor, PartMaterial};
 use crate::render::effects::Effects;
 use crate::render::view::{RenderSettings, ShadingMode};
-use crate::scene::synthetic::{write_nerfactor, NamedProbe, SyntheticScene};
-use crate::scene::Camera;
+use crate::scene::spec::NERFACTOR_TEST_PROBES;
+use crate::scene::synthetic::{write_nerfactor, SyntheticScene};
+use crate::scene::{Camera, Probe};
 
 /// Bump when the scene or its rendering changes, so stale caches are rebuilt.
 pub const VERSION: u32 = 1;
 pub const RESOLUTION: usize = 128;
 /// The NeRF hotdog cameras' field of view.
 pub const FOV_X: f32 = 0.691_111_2;
-/// The 8 NeRFactor test probes (CC0), committed under tests/fixtures/probes.
-pub const TEST_PROBES: [&str; 8] = ["city", "courtyard", "forest", "interior", "night", "studio", "sunrise", "sunset"];
 
 fn constant(name: &str, rgb: [f32; 3], roughness: f32, metallic: f32) -> PartMaterial {
     PartMaterial { name: name.into(), base_color: BaseColor::Constant(Vec3::from_array(rgb)), roughness, metallic }
@@ -106,10 +104,10 @@ fn orbit(count: usize, elevation_deg: (f32, f32), azimuth_offset: f32) -> Vec<Ca
         .collect()
 }
 
-pub fn scene(test_probes: Vec<NamedProbe>) -> SyntheticScene {
+pub fn scene(test_probes: Vec<Probe>) -> SyntheticScene {
     SyntheticScene {
         mesh: mesh(),
-        train_probe: NamedProbe { name: "sky".into(), image: sky(64, 32), strength: 1.0 },
+        train_probe: Probe { name: "sky".into(), image: sky(64, 32), strength: 1.0 },
         train: orbit(40, (15.0, 75.0), 0.0),
         val: orbit(4, (30.0, 60.0), 0.4),
         test: orbit(4, (25.0, 55.0), 1.1),
@@ -135,11 +133,10 @@ pub fn ensure_dataset(dir: &Path) -> Result<()> {
     }
     eprintln!("rendering the embedded default scene into {} (first use only)...", dir.display());
     let probe_dir = fixture_probe_dir();
-    let probes = TEST_PROBES
+    let probes = NERFACTOR_TEST_PROBES
         .iter()
         .map(|name| {
-            let path = probe_dir.join(format!("{name}.hdr"));
-            Ok(NamedProbe { name: name.to_string(), image: io::read_probe(&path)?, strength: 1.0 })
+            Probe::load(&probe_dir.join(format!("{name}.hdr")), 1.0)
         })
         .collect::<Result<Vec<_>>>()?;
     let settings = RenderSettings { mode: ShadingMode::MonteCarlo, spp: 64, supersample: 2, seed: 7, effects: Effects::ALL };

@@ -51,12 +51,12 @@ mod tests {
     #[test]
     fn strength_scales_radiance_and_name_is_the_stem() {
         let dir = std::env::temp_dir().join(format!("reconstruct-probe-{}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
+        std::fs::create_dir_all(&dir).expect("test setup");
         let mut img = Image::new(4, 2, 3);
         img.data.iter_mut().enumerate().for_each(|(i, v)| *v = i as f32 * 0.25);
         let path = dir.join("sky.exr");
-        write_exr(&path, &img).unwrap();
-        let probe = Probe::load(&path, 3.0).unwrap();
+        write_exr(&path, &img).expect("test setup");
+        let probe = Probe::load(&path, 3.0).expect("test setup");
         assert_eq!(probe.name, "sky");
         assert_eq!(probe.image, img);
         let r = probe.radiance_image();
@@ -66,9 +66,9 @@ mod tests {
     #[test]
     fn negative_radiance_is_refused_naming_the_file() {
         let dir = std::env::temp_dir().join(format!("reconstruct-probe-{}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
+        std::fs::create_dir_all(&dir).expect("test setup");
         let path = dir.join("bad.exr");
-        write_exr(&path, &Image::filled(2, 1, &[1.0, -1.0, 0.0])).unwrap();
+        write_exr(&path, &Image::filled(2, 1, &[1.0, -1.0, 0.0])).expect("test setup");
         let msg = format!("{:#}", Probe::load(&path, 1.0).unwrap_err());
         assert!(msg.contains("bad.exr") && msg.contains("negative"), "{msg}");
     }

@@ -287,7 +287,7 @@ mod tests {
 
     #[test]
     fn minimal_spec_gets_the_nerfactor_defaults_and_resolves_against_its_folder() {
-        let spec = SceneSpec::parse("data = \"my_data\"", Path::new("/specs"), "mine").unwrap();
+        let spec = SceneSpec::parse("data = \"my_data\"", Path::new("/specs"), "mine").expect("test setup");
         assert_eq!(spec.name, "mine");
         assert_eq!(spec.data_dir, PathBuf::from("/specs/my_data"));
         assert_eq!(spec.test_probes.names.len(), 8);
@@ -305,7 +305,7 @@ mod tests {
             ground_truth = { folder = "gt" }
             effects = { shadows = "on", specular = "off" }
         "#;
-        let spec = SceneSpec::parse(text, Path::new("/specs"), "x").unwrap();
+        let spec = SceneSpec::parse(text, Path::new("/specs"), "x").expect("test setup");
         assert_eq!(spec.data_dir, shared_dir().join("data/x"));
         assert_eq!(spec.train_probe, Some(ProbeFile { path: "/abs/probe.hdr".into(), strength: 3.0 }));
         assert_eq!(spec.effects, EffectSwitches { shadows: Switch::On, specular: Switch::Off });

@@ -15,30 +15,16 @@ use crate::image::{io, Image};
 use crate::light::CubeMap;
 use crate::render::gbuffer::GBuffer;
 use crate::render::view::{render_view, unpremultiply, PreparedLight, RenderSettings};
-use crate::scene::Camera;
-
-/// A lat-long light probe (Blender convention, linear RGB) with its name and strength.
-#[derive(Clone)]
-pub struct NamedProbe {
-    pub name: String,
-    pub image: Image,
-    pub strength: f32,
-}
-
-impl NamedProbe {
-    pub fn radiance(&self) -> Image {
-        self.image.map_channels(3, |v| v * self.strength)
-    }
-}
+use crate::scene::{Camera, Probe};
 
 pub struct SyntheticScene {
     pub mesh: Mesh,
-    pub train_probe: NamedProbe,
+    pub train_probe: Probe,
     pub train: Vec<Camera>,
     pub val: Vec<Camera>,
     pub test: Vec<Camera>,
     /// Relighting probes for the test views (strength applied as given).
-    pub test_probes: Vec<NamedProbe>,
+    pub test_probes: Vec<Probe>,
 }
 
 /// Cube-map resolution used to light synthetic renders (probes here are small lat-long maps).
@@ -50,11 +36,11 @@ const CUBE_RES: usize = 64;
 pub fn write_nerfactor(scene: &SyntheticScene, dir: &Path, settings: &RenderSettings) -> Result<()> {
     fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
     let bvh = Bvh::build(&scene.mesh);
-    let train_light = PreparedLight::new(CubeMap::from_latlong(&scene.train_probe.radiance(), CUBE_RES));
+    let train_light = PreparedLight::new(CubeMap::from_latlong(&scene.train_probe.radiance_image(), CUBE_RES));
     let test_lights: Vec<(String, PreparedLight)> = scene
         .test_probes
         .iter()
-        .map(|p| (p.name.clone(), PreparedLight::new(CubeMap::from_latlong(&p.radiance(), CUBE_RES))))
+        .map(|p| (p.name.clone(), PreparedLight::new(CubeMap::from_latlong(&p.radiance_image(), CUBE_RES))))
         .collect();
     io::write_exr(&dir.join(format!("{}.exr", scene.train_probe.name)), &scene.train_probe.image)?;
 

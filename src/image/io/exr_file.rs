@@ -144,7 +144,7 @@ mod tests {
 
     fn temp_path(name: &str) -> std::path::PathBuf {
         let dir = std::env::temp_dir().join(format!("reconstruct-exr-{}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
+        std::fs::create_dir_all(&dir).expect("test setup");
         dir.join(name)
     }
 
@@ -161,8 +161,8 @@ mod tests {
         for c in 1..=4 {
             let img = ramp(7, 5, c);
             let p = temp_path(&format!("ramp{c}.exr"));
-            write_exr(&p, &img).unwrap();
-            assert_eq!(read_exr(&p).unwrap(), img, "{c} channels");
+            write_exr(&p, &img).expect("test setup");
+            assert_eq!(read_exr(&p).expect("test setup"), img, "{c} channels");
         }
     }
 
@@ -170,9 +170,9 @@ mod tests {
     fn a_named_single_channel_reads_back_by_name_and_by_default() {
         let img = ramp(6, 4, 1);
         let p = temp_path("depth.exr");
-        write_exr_channels(&p, &img, &["Z"]).unwrap();
-        assert_eq!(read_exr_channel(&p, "Z").unwrap(), img);
-        assert_eq!(read_exr(&p).unwrap(), img);
+        write_exr_channels(&p, &img, &["Z"]).expect("test setup");
+        assert_eq!(read_exr_channel(&p, "Z").expect("test setup"), img);
+        assert_eq!(read_exr(&p).expect("test setup"), img);
         let msg = format!("{:#}", read_exr_channel(&p, "Q").unwrap_err());
         assert!(msg.contains("depth.exr") && msg.contains("\"Q\""), "{msg}");
     }
@@ -181,7 +181,7 @@ mod tests {
     fn ambiguous_channels_are_an_error_naming_them() {
         let img = ramp(3, 3, 2);
         let p = temp_path("uv.exr");
-        write_exr_channels(&p, &img, &["U", "V"]).unwrap();
+        write_exr_channels(&p, &img, &["U", "V"]).expect("test setup");
         let msg = format!("{:#}", read_exr(&p).unwrap_err());
         assert!(msg.contains("uv.exr") && msg.contains("U, V"), "{msg}");
     }

@@ -93,7 +93,7 @@ mod tests {
 
     fn temp_path(name: &str) -> std::path::PathBuf {
         let dir = std::env::temp_dir().join(format!("reconstruct-png-{}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
+        std::fs::create_dir_all(&dir).expect("test setup");
         dir.join(name)
     }
 
@@ -105,8 +105,8 @@ mod tests {
                 *v = ((i * 7) % 256) as f32 / 255.0;
             }
             let p = temp_path(&format!("codes{channels}.png"));
-            write_png(&p, &img).unwrap();
-            let back = read_png(&p).unwrap();
+            write_png(&p, &img).expect("test setup");
+            let back = read_png(&p).expect("test setup");
             assert_eq!((back.width, back.height, back.channels), (256, 1, channels));
             assert_eq!(back.data, img.data);
         }
@@ -117,8 +117,8 @@ mod tests {
         let mut img = Image::new(4, 1, 1);
         img.data = vec![-0.5, 1.7, 0.5 / 255.0 + 1e-4, 0.49 / 255.0];
         let p = temp_path("clamp.png");
-        write_png(&p, &img).unwrap();
-        let back = read_png(&p).unwrap();
+        write_png(&p, &img).expect("test setup");
+        let back = read_png(&p).expect("test setup");
         assert_eq!(back.data, vec![0.0, 1.0, 1.0 / 255.0, 0.0]);
     }
 
@@ -129,8 +129,8 @@ mod tests {
             *v = (i as f32 * 1234.0 % 65536.0) / 65535.0;
         }
         let p = temp_path("deep.png");
-        write_png16(&p, &img).unwrap();
-        let back = read_png(&p).unwrap();
+        write_png16(&p, &img).expect("test setup");
+        let back = read_png(&p).expect("test setup");
         for (a, b) in back.data.iter().zip(&img.data) {
             assert!((a - b).abs() < 0.6 / 65535.0, "{a} vs {b}");
         }
@@ -139,7 +139,7 @@ mod tests {
     #[test]
     fn a_file_that_is_not_png_is_refused_naming_it() {
         let p = temp_path("fake.png");
-        std::fs::write(&p, b"definitely not a picture").unwrap();
+        std::fs::write(&p, b"definitely not a picture").expect("test setup");
         let msg = format!("{:#}", read_png(&p).unwrap_err());
         assert!(msg.contains("fake.png"), "{msg}");
     }

@@ -36,7 +36,7 @@ mod tests {
     use candle_core::{Device, DType};
 
     fn vec2(t: &Tensor) -> Vec<Vec<f32>> {
-        t.squeeze(0).unwrap().to_dtype(DType::F32).unwrap().to_vec2().unwrap()
+        t.squeeze(0).expect("test setup").to_dtype(DType::F32).expect("test setup").to_vec2().expect("test setup")
     }
 
     /// C = 8, P = 4: pose value j rotates exactly the pair (2j, 2j+1); worked by hand.
@@ -69,14 +69,14 @@ mod tests {
         let q = Tensor::randn(0f32, 1.0, (1, 2 * l, c), &dev)?;
         let k = Tensor::randn(0f32, 1.0, (1, 2 * l, c), &dev)?;
         let dots = |p: [[f32; 4]; 2]| -> Vec<Vec<f32>> {
-            let pose = Tensor::new(&[p], &dev).unwrap();
-            let qr = apply_cape(&q, &pose, 1).unwrap();
-            let kr = apply_cape(&k, &pose, 1).unwrap();
+            let pose = Tensor::new(&[p], &dev).expect("test setup");
+            let qr = apply_cape(&q, &pose, 1).expect("test setup");
+            let kr = apply_cape(&k, &pose, 1).expect("test setup");
             // head-split as the attention does, then all q·k dot products
-            let qh = crate::prior::idarb::attention::heads_to_batch(&qr, heads).unwrap();
-            let kh = crate::prior::idarb::attention::heads_to_batch(&kr, heads).unwrap();
-            let d = qh.matmul(&kh.t().unwrap()).unwrap();
-            d.flatten_to(1).unwrap().to_vec2().unwrap()
+            let qh = crate::prior::idarb::attention::heads_to_batch(&qr, heads).expect("test setup");
+            let kh = crate::prior::idarb::attention::heads_to_batch(&kr, heads).expect("test setup");
+            let d = qh.matmul(&kh.t().expect("test setup")).expect("test setup");
+            d.flatten_to(1).expect("test setup").to_vec2().expect("test setup")
         };
         let base = dots([[0.1, -0.4, 1.2, 0.0], [0.9, 0.5, -0.3, 0.2]]);
         let shifted = dots([[0.1 + 0.7, -0.4 - 1.3, 1.2 + 0.25, 0.0 + 2.0], [0.9 + 0.7, 0.5 - 1.3, -0.3 + 0.25, 0.2 + 2.0]]);
