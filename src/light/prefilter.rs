@@ -348,12 +348,12 @@ fn kernel_stencil(sres: usize, out_res: usize, cone_angle: f32, weight: impl Fn(
         let mut row: Vec<(u32, f32)> = Vec::new();
         for &t in fine {
             let p = &packed[t];
+            // Weights of all lanes first (branch-free, vectorises), then keep the non-zero ones.
+            let mut w = [0.0f32; LANES];
             for k in 0..LANES {
-                let w = weight(Vec3::new(p.x[k], p.y[k], p.z[k]), r, p.area[k]);
-                if w > 0.0 {
-                    row.push((p.index[k], w));
-                }
+                w[k] = weight(Vec3::new(p.x[k], p.y[k], p.z[k]), r, p.area[k]);
             }
+            row.extend((0..LANES).filter(|&k| w[k] > 0.0).map(|k| (p.index[k], w[k])));
         }
         let wsum: f32 = row.iter().map(|e| e.1).sum();
         row.iter_mut().for_each(|e| e.1 /= wsum);

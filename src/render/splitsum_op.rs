@@ -99,6 +99,11 @@ impl LightStencils {
         LightStencils { chain_res, level_roughness, specular, irradiance: (irr, irr_t), level_maps }
     }
 
+    /// Number of stored stencil entries (forward and transpose), a measure of memory and cost.
+    pub fn nnz(&self) -> usize {
+        self.specular.iter().map(|(_, a, b)| a.nnz() + b.nnz()).sum::<usize>() + self.irradiance.0.nnz() + self.irradiance.1.nnz()
+    }
+
     pub fn base_res(&self) -> usize {
         self.chain_res[0]
     }
