@@ -14,7 +14,7 @@ use reconstruct::optim::gradcheck::{check_gradient_with, GradCheckOptions};
 use reconstruct::render::effects::Effects;
 use reconstruct::render::gbuffer::{GBuffer, Surfel};
 use reconstruct::render::splitsum;
-use reconstruct::render::splitsum_op::{shade_splitsum, LightStencils, SplitSumShading};
+use reconstruct::render::splitsum_op::{shade_splitsum, LightMaps, SplitSumShading};
 use reconstruct::rng::Sampler;
 
 fn random_dir(rng: &mut Sampler) -> Vec3 {
@@ -84,7 +84,7 @@ fn check(op: &SplitSumShading, kd: Tensor, ks: Tensor, light: Tensor, what: &str
 }
 
 fn op_for(res: usize, geometry: &[Option<(Vec3, Vec3)>]) -> SplitSumShading {
-    let light = Arc::new(LightStencils::new(res, PrefilterOptions::default()));
+    let light = Arc::new(LightMaps::new(res, PrefilterOptions::default()));
     SplitSumShading::new(geometry, light, lut(), Effects::ALL)
 }
 
@@ -126,7 +126,7 @@ fn forward_equals_the_split_sum_renderer() {
         let lut = lut();
         for effects in [Effects::ALL, Effects { shadows: false, specular: false }] {
             let reference = splitsum::shade(&gbuf, &params, &SplitSumLight::with_options(&base, opts), &lut, effects);
-            let op = SplitSumShading::from_gbuffer(&gbuf, Arc::new(LightStencils::new(res, opts)), lut.clone(), effects);
+            let op = SplitSumShading::from_gbuffer(&gbuf, Arc::new(LightMaps::new(res, opts)), lut.clone(), effects);
             let kd: Vec<f32> = params.iter().flat_map(|p| p.expect("params").kd.to_array()).collect();
             let ks: Vec<f32> = params.iter().flat_map(|p| p.map(|p| [1.0, p.roughness, p.metallic]).expect("params")).collect();
             let n = w * h;
@@ -209,7 +209,7 @@ fn light_backward_is_the_exact_transpose_of_its_forward() {
     // copy-only chain (16²) and one that stops at an odd resolution (24² → 12²).
     let mut rng = Sampler::from_seed(7);
     for res in [16usize, 24, 32, 64] {
-        let st = LightStencils::new(res, PrefilterOptions::default());
+        let st = LightMaps::new(res, PrefilterOptions::default());
         let x: Vec<f64> = (0..18 * res * res).map(|_| rng.next_f32() as f64 - 0.5).collect();
         let lv = st.forward(&x);
         let ys: Vec<Vec<f64>> = lv.specular.iter().map(|l| l.iter().map(|_| rng.next_f32() as f64 - 0.5).collect()).collect();
@@ -263,6 +263,28 @@ fn specular_light_gradient_on_the_texels_that_matter() {
     assert!(g.iter().filter(|v| **v != 0.0).count() < g.len() / 2);
 }
 
+#[test]
+fn matrix_free_light_agrees_with_the_stored_stencils() {
+    let mut rng = Sampler::from_seed(9);
+    for res in [32usize, 64] {
+        let (stored, free) = (LightMaps::new(res, PrefilterOptions::default()), LightMaps::matrix_free(res, PrefilterOptions::default()));
+        let x: Vec<f64> = (0..18 * res * res).map(|_| 3.0 * rng.next_f32() as f64).collect();
+        let (a, b) = (stored.forward(&x), free.forward(&x));
+        let close = |p: &[f64], q: &[f64], what: &str| {
+            let scale = p.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+            let err = p.iter().zip(q).fold(0.0f64, |m, (u, v)| m.max((u - v).abs()));
+            assert!(err <= 1e-5 * scale, "base {res}², {what}: max error {err} vs scale {scale}");
+        };
+        for (k, (p, q)) in a.specular.iter().zip(&b.specular).enumerate() {
+            close(p, q, &format!("specular level {k}"));
+        }
+        close(&a.diffuse, &b.diffuse, "diffuse");
+        let ys: Vec<Vec<f64>> = a.specular.iter().map(|l| l.iter().map(|_| rng.next_f32() as f64 - 0.5).collect()).collect();
+        let yd: Vec<f64> = a.diffuse.iter().map(|_| rng.next_f32() as f64 - 0.5).collect();
+        close(&stored.backward(&ys, &yd), &free.backward(&ys, &yd), "adjoint");
+    }
+}
+
 /// Timing of the light rebuild and the op at larger base maps:
 /// `cargo test --release --test diff_splitsum measure -- --ignored --nocapture`.
 #[test]
@@ -270,12 +292,12 @@ fn specular_light_gradient_on_the_texels_that_matter() {
 fn measure() {
     let mut rng = Sampler::from_seed(6);
     let n = 256 * 256;
-    for res in [128usize, 256] {
+    for (res, stored) in [(128usize, true), (128, false), (256, true), (256, false), (512, false)] {
         let t0 = Instant::now();
-        let light = Arc::new(LightStencils::new(res, PrefilterOptions::default()));
+        let opts = PrefilterOptions::default();
+        let light = Arc::new(if stored { LightMaps::new(res, opts) } else { LightMaps::matrix_free(res, opts) });
         let build = t0.elapsed().as_secs_f64();
-        println!("base 6×{res}²: {} stencil entries", light.nnz());
-        let op = SplitSumShading::new(&random_geometry(n, 0, &mut rng), light, lut(), Effects::ALL);
+        let op = SplitSumShading::new(&random_geometry(n, 0, &mut rng), light.clone(), lut(), Effects::ALL);
         let (kd, ks) = materials(n, &mut rng, |r| [r.next_f32() as f64; 3], any_roughness, |r, _| r.next_f32() as f64);
         let (kd, ks) = (kd.to_dtype(DType::F32).expect("f32"), ks.to_dtype(DType::F32).expect("f32"));
         let kd = Var::from_tensor(&kd).expect("var");
@@ -290,7 +312,9 @@ fn measure() {
         let _ = SplitSumLight::new(&random_light(res, &mut rng));
         let plain = t3.elapsed().as_secs_f64();
         println!(
-            "base 6×{res}²: stencils build {build:.2} s, forward {fwd:.3} s, backward {bwd:.3} s ({n} pixels); SplitSumLight::new {plain:.2} s"
+            "base 6×{res}² {}: build {build:.2} s ({} stencil entries), forward {fwd:.3} s, backward {bwd:.3} s ({n} pixels); SplitSumLight::new {plain:.2} s",
+            if stored { "stored" } else { "matrix-free" },
+            light.nnz()
         );
     }
 }

@@ -214,6 +214,37 @@ fn pack_tiles(sres: usize, src_tiles: &[Tile], values: Option<&[Vec3]>) -> Vec<T
 /// Culling is hierarchical: 8×8 output tiles keep the 32×32 and then the 4×4 source tiles that can
 /// reach any of their texels, then each output texel keeps those that reach its own cone.
 fn filter_rows<R: Send>(sres: usize, out_res: usize, cone_angle: f32, src_tiles: &[Tile], row: impl Fn(Vec3, &[usize]) -> R + Sync) -> Vec<R> {
+    let per_tile = fold_rows(
+        sres,
+        out_res,
+        cone_angle,
+        src_tiles,
+        Vec::new,
+        |acc: &mut Vec<(usize, R)>, o, r, fine| acc.push((o, row(r, fine))),
+        |mut a, mut b| {
+            a.append(&mut b);
+            a
+        },
+    );
+    let mut rows: Vec<Option<R>> = (0..6 * out_res * out_res).map(|_| None).collect();
+    for (k, v) in per_tile {
+        rows[k] = Some(v);
+    }
+    rows.into_iter().map(|r| r.expect("every output texel belongs to one output tile")).collect()
+}
+
+/// The culling core: visits every output texel (flat index o, direction r, candidate source tiles)
+/// in parallel over 8×8 output tiles, folding into accumulators made by `init` and combined by
+/// `reduce` (few accumulators: the tiles are split into about 4 jobs per thread).
+fn fold_rows<A: Send>(
+    sres: usize,
+    out_res: usize,
+    cone_angle: f32,
+    src_tiles: &[Tile],
+    init: impl Fn() -> A + Sync + Send,
+    visit: impl Fn(&mut A, usize, Vec3, &[usize]) + Sync + Send,
+    reduce: impl Fn(A, A) -> A + Sync + Send,
+) -> A {
     use std::f32::consts::PI;
     let out_tiles = make_tiles(out_res, 8);
     // cos of the reach of each source tile, per texel and (with the widest output tile) per tile.
@@ -230,32 +261,75 @@ fn filter_rows<R: Send>(sres: usize, out_res: usize, cone_angle: f32, src_tiles:
         groups[(st.face * supers_per_side + st.i0 / SUPER) * supers_per_side + st.j0 / SUPER].push(t);
     }
     let super_reach: Vec<f32> = super_tiles.iter().map(|st| cos_reach(cone_angle + st.radius + widest_out)).collect();
-    let per_tile: Vec<Vec<(usize, R)>> = out_tiles
+    let min_len = out_tiles.len().div_ceil(4 * rayon::current_num_threads().max(1)).max(1);
+    out_tiles
         .par_iter()
-        .map(|ot| {
+        .with_min_len(min_len)
+        .fold(&init, |mut acc, ot| {
             let coarse: Vec<usize> = (0..super_tiles.len())
                 .filter(|&g| ot.centre.dot(super_tiles[g].centre) >= super_reach[g])
                 .flat_map(|g| groups[g].iter().copied())
                 .filter(|&t| ot.centre.dot(src_tiles[t].centre) >= tile_reach[t])
                 .collect();
             let mut fine = Vec::with_capacity(coarse.len());
-            let mut out = Vec::with_capacity((ot.i1 - ot.i0) * (ot.j1 - ot.j0));
             for i in ot.i0..ot.i1 {
                 for j in ot.j0..ot.j1 {
                     let r = texel_dir(out_res, ot.face, i, j);
                     fine.clear();
                     fine.extend(coarse.iter().copied().filter(|&t| r.dot(src_tiles[t].centre) >= texel_reach[t]));
-                    out.push(((ot.face * out_res + i) * out_res + j, row(r, &fine)));
+                    visit(&mut acc, (ot.face * out_res + i) * out_res + j, r, &fine);
                 }
             }
-            out
+            acc
         })
-        .collect();
-    let mut rows: Vec<Option<R>> = (0..6 * out_res * out_res).map(|_| None).collect();
-    for (k, v) in per_tile.into_iter().flatten() {
-        rows[k] = Some(v);
-    }
-    rows.into_iter().map(|r| r.expect("every output texel belongs to one output tile")).collect()
+        .reduce(&init, &reduce)
+}
+
+/// Adjoint of [`kernel_filter`] without storing its matrix: every output texel's normalised row is
+/// recomputed (same culling, same weights) and `g_out` scattered through it into a source-sized
+/// buffer per parallel job; the buffers are summed.
+fn kernel_filter_adjoint(g_out: &CubeMap, sres: usize, cone_angle: f32, weight: impl Fn(Vec3, Vec3, f32) -> f32 + Sync) -> CubeMap {
+    let src_tiles = make_tiles(sres, TILE_SIDE);
+    let packed = pack_tiles(sres, &src_tiles, None);
+    let n_src = 6 * sres * sres;
+    let data = fold_rows(
+        sres,
+        g_out.res,
+        cone_angle,
+        &src_tiles,
+        || vec![Vec3::ZERO; n_src],
+        |acc, o, r, fine| {
+            let mut wsum = [0.0f32; LANES];
+            for &t in fine {
+                let p = &packed[t];
+                for k in 0..LANES {
+                    wsum[k] += weight(Vec3::new(p.x[k], p.y[k], p.z[k]), r, p.area[k]);
+                }
+            }
+            let wsum: f32 = wsum.iter().sum();
+            if wsum <= 0.0 {
+                return;
+            }
+            let g = g_out.data[o] / wsum;
+            for &t in fine {
+                let p = &packed[t];
+                let mut w = [0.0f32; LANES];
+                for k in 0..LANES {
+                    w[k] = weight(Vec3::new(p.x[k], p.y[k], p.z[k]), r, p.area[k]);
+                }
+                for k in 0..LANES {
+                    if w[k] > 0.0 {
+                        acc[p.index[k] as usize] += g * w[k];
+                    }
+                }
+            }
+        },
+        |mut a, b| {
+            a.iter_mut().zip(b).for_each(|(x, y)| *x += y);
+            a
+        },
+    );
+    CubeMap { res: sres, data }
 }
 
 /// Normalised kernel filter: output texel r of an `out_res` map gets ∑ w(l, r)·src(l) / ∑ w(l, r)
@@ -411,6 +485,17 @@ pub fn prefilter_specular_stencil(src_res: usize, out_res: usize, roughness: f32
     kernel_stencil(src_res, out_res, cone, weight)
 }
 
+/// Adjoint of [`prefilter_specular`] from a `src_res`² source: ∂L/∂src from ∂L/∂out, matrix-free.
+pub fn prefilter_specular_adjoint(g_out: &CubeMap, src_res: usize, roughness: f32, kernel_mass: f32) -> CubeMap {
+    let (cone, weight) = specular_kernel(roughness, kernel_mass);
+    kernel_filter_adjoint(g_out, src_res, cone, weight)
+}
+
+/// Adjoint of [`irradiance`], matrix-free.
+pub fn irradiance_adjoint(g_out: &CubeMap) -> CubeMap {
+    kernel_filter_adjoint(g_out, g_out.res, IRRADIANCE_CONE, irradiance_weight)
+}
+
 /// Cosine-weighted mean of the radiance over each output texel's hemisphere (= irradiance/π),
 /// at the resolution of `src`.
 pub fn irradiance(src: &CubeMap) -> CubeMap {
@@ -558,8 +643,18 @@ mod tests {
             for (a, b) in got.iter().zip(&reference.data) {
                 assert!((*a - *b).abs().max_element() < 1e-5 * b.abs().max_element().max(1.0), "{a} vs {b}");
             }
-            // Transpose: the same entries, seen from the source side.
+            // Transpose: the same entries, seen from the source side; the matrix-free adjoint agrees.
             let t = st.transpose();
+            let mut g = CubeMap::constant(st.out_res, Vec3::ZERO);
+            for v in g.data.iter_mut() {
+                *v = Vec3::new(rng.next_f32() - 0.5, rng.next_f32(), 2.0 * rng.next_f32());
+            }
+            let adjoint = if st.out_res == 8 { prefilter_specular_adjoint(&g, 16, 0.3, 0.95) } else { irradiance_adjoint(&g) };
+            let via_t = apply(&t, &g);
+            let scale = via_t.iter().map(|v| v.abs().max_element()).fold(0.0f32, f32::max);
+            for (a, b) in adjoint.data.iter().zip(&via_t) {
+                assert!((*a - *b).abs().max_element() < 1e-5 * scale, "{a} vs {b}");
+            }
             assert_eq!(t.nnz(), st.nnz());
             let mut rng = Sampler::from_seed(4);
             for _ in 0..50 {

@@ -11,7 +11,7 @@
 //!
 //! The light is a parameter, so every call rebuilds the split-sum light from it: mip chain by 2×2
 //! averaging, GGX-prefiltered specular levels, irradiance. All of these are fixed linear maps of the
-//! base texels, held as sparse [`Stencil`]s built once per base resolution in [`LightStencils`]
+//! base texels, held as sparse [`Stencil`]s built once per base resolution in [`LightMaps`]
 //! (building them costs one `SplitSumLight::new`; applying them is a sparse product). The backward
 //! is the transpose of each step: scatter into level texels with the lookup tap weights, then the
 //! transposed prefilter/irradiance stencils, then the transpose of the 2×2 averaging.
@@ -35,8 +35,8 @@ use rayon::prelude::*;
 use crate::light::brdf_lut::BrdfLut;
 use crate::light::cubemap::{CubeMap, Taps};
 use crate::light::prefilter::{
-    irradiance_stencil, level_roughness, mip_chain_res, prefilter_specular_stencil, specular_sources, PrefilterOptions,
-    Stencil, MAX_ROUGHNESS,
+    irradiance, irradiance_adjoint, irradiance_stencil, level_roughness, mip_chain_res, prefilter_specular,
+    prefilter_specular_adjoint, prefilter_specular_stencil, specular_sources, PrefilterOptions, Stencil, MAX_ROUGHNESS,
 };
 use crate::material::brdf::{self, MIN_ROUGHNESS};
 use crate::optim::tape::{apply, scatter_add_banded, Kernel, Real};
@@ -58,19 +58,29 @@ fn apply_stencil(st: &Stencil, src: &[f64], out: &mut [f64]) {
     });
 }
 
-/// The split-sum light of one base resolution as fixed linear maps (shared by every view and
-/// iteration; build once, it costs one prefilter of the light).
-pub struct LightStencils {
+/// The split-sum light of one base resolution as fixed linear maps, shared by every view and
+/// iteration. Two ways to hold them:
+/// - [`LightMaps::new`] stores each map and its transpose as sparse stencils (f64 arithmetic,
+///   exact adjoint, fast per call; memory ≈ 16 bytes per entry: about 0.5 GB at a 6×128² base,
+///   4 GB at 6×256², so only for small bases and for gradient checks);
+/// - [`LightMaps::matrix_free`] recomputes the weights every call with the prefilter's own code
+///   (f32 arithmetic, memory of a few cube maps, each call costs about two `SplitSumLight::new`).
+pub struct LightMaps {
     /// Resolutions of the mip chain (level 0 = the base; a repeated resolution is a copy).
     pub chain_res: Vec<usize>,
     /// The GGX roughness of each specular level (level k has the resolution `chain_res[k]`).
     pub level_roughness: Vec<f32>,
-    /// Per specular level: the chain level it reads, its stencil and the stencil's transpose.
-    specular: Vec<(usize, Stencil, Stencil)>,
-    /// Irradiance of the last chain level, and its transpose.
-    irradiance: (Stencil, Stencil),
+    /// Per specular level, the chain level it is filtered from.
+    sources: Vec<usize>,
+    storage: Storage,
     /// Empty maps of each level's resolution, for `lookup_taps`.
     level_maps: Vec<CubeMap>,
+}
+
+enum Storage {
+    /// Per specular level: its stencil and the transpose; then irradiance and its transpose.
+    Stored { specular: Vec<(Stencil, Stencil)>, irradiance: (Stencil, Stencil) },
+    MatrixFree { kernel_mass: f32 },
 }
 
 /// The split-sum light rebuilt from one base map, in f64, RGB texels flat.
@@ -79,29 +89,51 @@ pub struct LightLevels {
     pub diffuse: Vec<f64>,
 }
 
-impl LightStencils {
+fn to_cubemap(res: usize, flat: &[f64]) -> CubeMap {
+    CubeMap { res, data: flat.chunks(3).map(|v| Vec3::new(v[0] as f32, v[1] as f32, v[2] as f32)).collect() }
+}
+
+fn from_cubemap(m: &CubeMap) -> Vec<f64> {
+    m.data.iter().flat_map(|v| [v.x as f64, v.y as f64, v.z as f64]).collect()
+}
+
+impl LightMaps {
+    /// Stored stencils (see the type doc).
     pub fn new(base_res: usize, opts: PrefilterOptions) -> Self {
-        let chain_res = mip_chain_res(base_res);
-        let level_roughness = level_roughness(chain_res.len());
-        let specular = specular_sources(&chain_res, opts)
-            .into_iter()
+        let mut maps = Self::matrix_free(base_res, opts);
+        let specular = maps
+            .sources
+            .iter()
             .enumerate()
-            .map(|(k, src)| {
-                let st = prefilter_specular_stencil(chain_res[src], chain_res[k], level_roughness[k], opts.kernel_mass);
+            .map(|(k, &src)| {
+                let st = prefilter_specular_stencil(maps.chain_res[src], maps.chain_res[k], maps.level_roughness[k], opts.kernel_mass);
                 let t = st.transpose();
-                (src, st, t)
+                (st, t)
             })
             .collect();
-        let last = chain_res[chain_res.len() - 1];
-        let irr = irradiance_stencil(last);
+        let irr = irradiance_stencil(maps.chain_res[maps.chain_res.len() - 1]);
         let irr_t = irr.transpose();
+        maps.storage = Storage::Stored { specular, irradiance: (irr, irr_t) };
+        maps
+    }
+
+    /// Weights recomputed every call (see the type doc).
+    pub fn matrix_free(base_res: usize, opts: PrefilterOptions) -> Self {
+        let chain_res = mip_chain_res(base_res);
+        let level_roughness = level_roughness(chain_res.len());
+        let sources = specular_sources(&chain_res, opts);
         let level_maps = chain_res.iter().map(|&r| CubeMap::constant(r, Vec3::ZERO)).collect();
-        LightStencils { chain_res, level_roughness, specular, irradiance: (irr, irr_t), level_maps }
+        LightMaps { chain_res, level_roughness, sources, storage: Storage::MatrixFree { kernel_mass: opts.kernel_mass }, level_maps }
     }
 
     /// Number of stored stencil entries (forward and transpose), a measure of memory and cost.
     pub fn nnz(&self) -> usize {
-        self.specular.iter().map(|(_, a, b)| a.nnz() + b.nnz()).sum::<usize>() + self.irradiance.0.nnz() + self.irradiance.1.nnz()
+        match &self.storage {
+            Storage::Stored { specular, irradiance } => {
+                specular.iter().map(|(a, b)| a.nnz() + b.nnz()).sum::<usize>() + irradiance.0.nnz() + irradiance.1.nnz()
+            }
+            Storage::MatrixFree { .. } => 0,
+        }
     }
 
     pub fn base_res(&self) -> usize {
@@ -140,30 +172,53 @@ impl LightStencils {
     /// The prefiltered specular levels and the diffuse map of `base`.
     pub fn forward(&self, base: &[f64]) -> LightLevels {
         let chain = self.chain(base);
-        let specular = self
-            .specular
-            .iter()
-            .enumerate()
-            .map(|(k, (src, st, _))| {
-                let mut out = vec![0.0; 3 * Self::texels(self.chain_res[k])];
-                apply_stencil(st, &chain[*src], &mut out);
-                out
-            })
-            .collect();
         let last = chain.len() - 1;
-        let mut diffuse = vec![0.0; 3 * Self::texels(self.chain_res[last])];
-        apply_stencil(&self.irradiance.0, &chain[last], &mut diffuse);
-        LightLevels { specular, diffuse }
+        match &self.storage {
+            Storage::Stored { specular, irradiance } => {
+                let specular = specular
+                    .iter()
+                    .enumerate()
+                    .map(|(k, (st, _))| {
+                        let mut out = vec![0.0; 3 * Self::texels(self.chain_res[k])];
+                        apply_stencil(st, &chain[self.sources[k]], &mut out);
+                        out
+                    })
+                    .collect();
+                let mut diffuse = vec![0.0; 3 * Self::texels(self.chain_res[last])];
+                apply_stencil(&irradiance.0, &chain[last], &mut diffuse);
+                LightLevels { specular, diffuse }
+            }
+            Storage::MatrixFree { kernel_mass } => {
+                let maps: Vec<CubeMap> = chain.iter().zip(&self.chain_res).map(|(c, &r)| to_cubemap(r, c)).collect();
+                let specular = (0..maps.len())
+                    .map(|k| from_cubemap(&prefilter_specular(&maps[self.sources[k]], self.chain_res[k], self.level_roughness[k], *kernel_mass)))
+                    .collect();
+                LightLevels { specular, diffuse: from_cubemap(&irradiance(&maps[last])) }
+            }
+        }
     }
 
     /// Adjoint of [`forward`](Self::forward): ∂L/∂base from ∂L/∂(specular levels) and ∂L/∂diffuse.
     pub fn backward(&self, g_specular: &[Vec<f64>], g_diffuse: &[f64]) -> Vec<f64> {
         let mut g_chain: Vec<Vec<f64>> = self.chain_res.iter().map(|&r| vec![0.0; 3 * Self::texels(r)]).collect();
-        for (k, (src, _, st_t)) in self.specular.iter().enumerate() {
-            apply_stencil(st_t, &g_specular[k], &mut g_chain[*src]);
-        }
         let last = g_chain.len() - 1;
-        apply_stencil(&self.irradiance.1, g_diffuse, &mut g_chain[last]);
+        match &self.storage {
+            Storage::Stored { specular, irradiance } => {
+                for (k, (_, st_t)) in specular.iter().enumerate() {
+                    apply_stencil(st_t, &g_specular[k], &mut g_chain[self.sources[k]]);
+                }
+                apply_stencil(&irradiance.1, g_diffuse, &mut g_chain[last]);
+            }
+            Storage::MatrixFree { kernel_mass } => {
+                let add = |acc: &mut Vec<f64>, m: &CubeMap| acc.iter_mut().zip(from_cubemap(m)).for_each(|(a, b)| *a += b);
+                for (k, g) in g_specular.iter().enumerate() {
+                    let src = self.sources[k];
+                    let g = to_cubemap(self.chain_res[k], g);
+                    add(&mut g_chain[src], &prefilter_specular_adjoint(&g, self.chain_res[src], self.level_roughness[k], *kernel_mass));
+                }
+                add(&mut g_chain[last], &irradiance_adjoint(&to_cubemap(self.chain_res[last], g_diffuse)));
+            }
+        }
         // Transpose of the chain, coarse to fine: each child texel gets ¼ of its parent's gradient.
         for k in (1..self.chain_res.len()).rev() {
             let (fine, coarse) = g_chain.split_at_mut(k);
@@ -279,14 +334,14 @@ struct PixelEval {
 #[derive(Clone)]
 pub struct SplitSumShading {
     pub pixels: Arc<[Option<PixelGeom>]>,
-    pub light: Arc<LightStencils>,
+    pub light: Arc<LightMaps>,
     pub lut: Arc<BrdfLut>,
     pub effects: Effects,
 }
 
 impl SplitSumShading {
     /// `geometry[p]` = (normal, outgoing direction) of pixel p, `None` for a miss.
-    pub fn new(geometry: &[Option<(Vec3, Vec3)>], light: Arc<LightStencils>, lut: Arc<BrdfLut>, effects: Effects) -> Self {
+    pub fn new(geometry: &[Option<(Vec3, Vec3)>], light: Arc<LightMaps>, lut: Arc<BrdfLut>, effects: Effects) -> Self {
         let diffuse_map = &light.level_maps[light.level_maps.len() - 1];
         let pixels: Vec<Option<PixelGeom>> =
             geometry.par_iter().map(|g| g.map(|(n, wo)| PixelGeom::new(n, wo, diffuse_map))).collect();
@@ -294,7 +349,7 @@ impl SplitSumShading {
     }
 
     /// Every pixel of `gbuf` (N = width·height), with the outgoing direction toward its camera.
-    pub fn from_gbuffer(gbuf: &GBuffer, light: Arc<LightStencils>, lut: Arc<BrdfLut>, effects: Effects) -> Self {
+    pub fn from_gbuffer(gbuf: &GBuffer, light: Arc<LightMaps>, lut: Arc<BrdfLut>, effects: Effects) -> Self {
         let geometry: Vec<Option<(Vec3, Vec3)>> =
             gbuf.surfels.iter().map(|s| s.map(|s| (s.normal, (gbuf.origin - s.position).normalize()))).collect();
         Self::new(&geometry, light, lut, effects)
