@@ -297,26 +297,27 @@ fn kernel_filter_adjoint(g_out: &CubeMap, sres: usize, cone_angle: f32, weight: 
         g_out.res,
         cone_angle,
         &src_tiles,
-        || vec![Vec3::ZERO; n_src],
-        |acc, o, r, fine| {
+        || (vec![Vec3::ZERO; n_src], Vec::<[f32; LANES]>::new()),
+        |(acc, row_w), o, r, fine| {
+            // The row's weights once (lanes, vectorised), then normalise and scatter.
+            row_w.clear();
             let mut wsum = [0.0f32; LANES];
             for &t in fine {
                 let p = &packed[t];
+                let mut w = [0.0f32; LANES];
                 for k in 0..LANES {
-                    wsum[k] += weight(Vec3::new(p.x[k], p.y[k], p.z[k]), r, p.area[k]);
+                    w[k] = weight(Vec3::new(p.x[k], p.y[k], p.z[k]), r, p.area[k]);
+                    wsum[k] += w[k];
                 }
+                row_w.push(w);
             }
             let wsum: f32 = wsum.iter().sum();
             if wsum <= 0.0 {
                 return;
             }
             let g = g_out.data[o] / wsum;
-            for &t in fine {
+            for (&t, w) in fine.iter().zip(row_w.iter()) {
                 let p = &packed[t];
-                let mut w = [0.0f32; LANES];
-                for k in 0..LANES {
-                    w[k] = weight(Vec3::new(p.x[k], p.y[k], p.z[k]), r, p.area[k]);
-                }
                 for k in 0..LANES {
                     if w[k] > 0.0 {
                         acc[p.index[k] as usize] += g * w[k];
@@ -324,11 +325,12 @@ fn kernel_filter_adjoint(g_out: &CubeMap, sres: usize, cone_angle: f32, weight: 
                 }
             }
         },
-        |mut a, b| {
+        |(mut a, buf), (b, _)| {
             a.iter_mut().zip(b).for_each(|(x, y)| *x += y);
-            a
+            (a, buf)
         },
-    );
+    )
+    .0;
     CubeMap { res: sres, data }
 }
 
