@@ -165,44 +165,88 @@ fn make_tiles(res: usize, size: usize) -> Vec<Tile> {
 const TILE_SIDE: usize = 4;
 const LANES: usize = TILE_SIDE * TILE_SIDE;
 
-/// One source tile's texels: directions, solid angles and RGB values, lane k = texel k of the tile.
+/// One source tile's texels: directions, solid angles, flat texel indices and RGB values, lane k =
+/// texel k of the tile (padding lanes have zero solid angle, hence zero weight).
 struct TileLanes {
     x: [f32; LANES],
     y: [f32; LANES],
     z: [f32; LANES],
     area: [f32; LANES],
+    index: [u32; LANES],
     value: [[f32; LANES]; 3],
 }
 
-/// Normalised kernel filter: output texel r of an `out_res` map gets ∑ w(l, r)·src(l) / ∑ w(l, r)
-/// over source texels l, where `weight(l, r, Ω_l)` already includes the solid angle and vanishes
-/// beyond `cone_angle` from r.
-///
-/// Culling is hierarchical: 8×8 output tiles keep the 32×32 and then the 4×4 source tiles that can
-/// reach any of their texels, then each output texel keeps those that reach its own cone. Source texels are packed
-/// tile by tile so each candidate tile is one contiguous run.
-fn kernel_filter(src: &CubeMap, out_res: usize, cone_angle: f32, weight: impl Fn(Vec3, Vec3, f32) -> f32 + Sync) -> CubeMap {
-    use std::f32::consts::PI;
-    let sres = src.res;
+/// Source tiles packed as structure-of-arrays lanes so the inner loops vectorise; `values` may be
+/// absent when only the weights are wanted (stencils).
+fn pack_tiles(sres: usize, src_tiles: &[Tile], values: Option<&[Vec3]>) -> Vec<TileLanes> {
     let src_area = face_solid_angles(sres);
-    let src_tiles = make_tiles(sres, TILE_SIDE);
-    let out_tiles = make_tiles(out_res, 8);
-    // Each 4×4 source tile packed as 16 lanes of structure-of-arrays data (padding lanes have zero
-    // solid angle, hence zero weight), so the inner loop vectorises.
-    let packed: Vec<TileLanes> = src_tiles
+    src_tiles
         .iter()
         .map(|st| {
-            let mut lanes = TileLanes { x: [0.0; LANES], y: [0.0; LANES], z: [1.0; LANES], area: [0.0; LANES], value: [[0.0; LANES]; 3] };
+            let mut lanes = TileLanes {
+                x: [0.0; LANES],
+                y: [0.0; LANES],
+                z: [1.0; LANES],
+                area: [0.0; LANES],
+                index: [0; LANES],
+                value: [[0.0; LANES]; 3],
+            };
             for (k, (i, j)) in (st.i0..st.i1).flat_map(|i| (st.j0..st.j1).map(move |j| (i, j))).enumerate() {
                 let d = texel_dir(sres, st.face, i, j);
-                let v = src.data[(st.face * sres + i) * sres + j];
+                let idx = (st.face * sres + i) * sres + j;
                 (lanes.x[k], lanes.y[k], lanes.z[k]) = (d.x, d.y, d.z);
                 lanes.area[k] = src_area[i * sres + j];
-                (lanes.value[0][k], lanes.value[1][k], lanes.value[2][k]) = (v.x, v.y, v.z);
+                lanes.index[k] = idx as u32;
+                if let Some(v) = values {
+                    (lanes.value[0][k], lanes.value[1][k], lanes.value[2][k]) = (v[idx].x, v[idx].y, v[idx].z);
+                }
             }
             lanes
         })
-        .collect();
+        .collect()
+}
+
+/// The culling shared by the filter and its stencils: for every output texel of an `out_res` map,
+/// `row(r, fine)` gets the texel's direction r and the ids of the 4×4 source tiles (of
+/// `make_tiles(sres, TILE_SIDE)`) that can reach it within `cone_angle`. Returns the rows in
+/// output-texel order.
+///
+/// Culling is hierarchical: 8×8 output tiles keep the 32×32 and then the 4×4 source tiles that can
+/// reach any of their texels, then each output texel keeps those that reach its own cone.
+fn filter_rows<R: Send>(sres: usize, out_res: usize, cone_angle: f32, src_tiles: &[Tile], row: impl Fn(Vec3, &[usize]) -> R + Sync) -> Vec<R> {
+    let per_tile = fold_rows(
+        sres,
+        out_res,
+        cone_angle,
+        src_tiles,
+        Vec::new,
+        |acc: &mut Vec<(usize, R)>, o, r, fine| acc.push((o, row(r, fine))),
+        |mut a, mut b| {
+            a.append(&mut b);
+            a
+        },
+    );
+    let mut rows: Vec<Option<R>> = (0..6 * out_res * out_res).map(|_| None).collect();
+    for (k, v) in per_tile {
+        rows[k] = Some(v);
+    }
+    rows.into_iter().map(|r| r.expect("every output texel belongs to one output tile")).collect()
+}
+
+/// The culling core: visits every output texel (flat index o, direction r, candidate source tiles)
+/// in parallel over 8×8 output tiles, folding into accumulators made by `init` and combined by
+/// `reduce` (few accumulators: the tiles are split into about 4 jobs per thread).
+fn fold_rows<A: Send>(
+    sres: usize,
+    out_res: usize,
+    cone_angle: f32,
+    src_tiles: &[Tile],
+    init: impl Fn() -> A + Sync + Send,
+    visit: impl Fn(&mut A, usize, Vec3, &[usize]) + Sync + Send,
+    reduce: impl Fn(A, A) -> A + Sync + Send,
+) -> A {
+    use std::f32::consts::PI;
+    let out_tiles = make_tiles(out_res, 8);
     // cos of the reach of each source tile, per texel and (with the widest output tile) per tile.
     let cos_reach = |a: f32| if a >= PI { -2.0 } else { a.cos() };
     let widest_out = out_tiles.iter().map(|t| t.radius).fold(0.0f32, f32::max);
@@ -217,87 +261,290 @@ fn kernel_filter(src: &CubeMap, out_res: usize, cone_angle: f32, weight: impl Fn
         groups[(st.face * supers_per_side + st.i0 / SUPER) * supers_per_side + st.j0 / SUPER].push(t);
     }
     let super_reach: Vec<f32> = super_tiles.iter().map(|st| cos_reach(cone_angle + st.radius + widest_out)).collect();
-    let per_tile: Vec<Vec<(usize, Vec3)>> = out_tiles
+    let min_len = out_tiles.len().div_ceil(4 * rayon::current_num_threads().max(1)).max(1);
+    out_tiles
         .par_iter()
-        .map(|ot| {
+        .with_min_len(min_len)
+        .fold(&init, |mut acc, ot| {
             let coarse: Vec<usize> = (0..super_tiles.len())
                 .filter(|&g| ot.centre.dot(super_tiles[g].centre) >= super_reach[g])
                 .flat_map(|g| groups[g].iter().copied())
                 .filter(|&t| ot.centre.dot(src_tiles[t].centre) >= tile_reach[t])
                 .collect();
             let mut fine = Vec::with_capacity(coarse.len());
-            let mut out = Vec::with_capacity((ot.i1 - ot.i0) * (ot.j1 - ot.j0));
             for i in ot.i0..ot.i1 {
                 for j in ot.j0..ot.j1 {
                     let r = texel_dir(out_res, ot.face, i, j);
                     fine.clear();
                     fine.extend(coarse.iter().copied().filter(|&t| r.dot(src_tiles[t].centre) >= texel_reach[t]));
-                    // Per-lane accumulators: a float sum across lanes would block vectorisation.
-                    let (mut aw, mut ar, mut ag, mut ab) = ([0.0f32; LANES], [0.0f32; LANES], [0.0f32; LANES], [0.0f32; LANES]);
-                    for &t in &fine {
-                        let p = &packed[t];
-                        for k in 0..LANES {
-                            // Branch-free: about half the candidates lie outside the cone, and a
-                            // mispredicted branch costs more than the multiply-adds.
-                            let w = weight(Vec3::new(p.x[k], p.y[k], p.z[k]), r, p.area[k]);
-                            aw[k] += w;
-                            ar[k] += w * p.value[0][k];
-                            ag[k] += w * p.value[1][k];
-                            ab[k] += w * p.value[2][k];
-                        }
-                    }
-                    let wsum: f32 = aw.iter().sum();
-                    let sum = Vec3::new(ar.iter().sum(), ag.iter().sum(), ab.iter().sum());
-                    let value = if wsum > 0.0 { sum / wsum } else { Vec3::ZERO };
-                    out.push(((ot.face * out_res + i) * out_res + j, value));
+                    visit(&mut acc, (ot.face * out_res + i) * out_res + j, r, &fine);
                 }
             }
-            out
+            acc
         })
-        .collect();
-    let mut data = vec![Vec3::ZERO; 6 * out_res * out_res];
-    for (k, v) in per_tile.into_iter().flatten() {
-        data[k] = v;
-    }
+        .reduce(&init, &reduce)
+}
+
+/// Adjoint of [`kernel_filter`] without storing its matrix: every output texel's normalised row is
+/// recomputed (same culling, same weights) and `g_out` scattered through it into a source-sized
+/// buffer per parallel job; the buffers are summed.
+fn kernel_filter_adjoint(g_out: &CubeMap, sres: usize, cone_angle: f32, weight: impl Fn(Vec3, Vec3, f32) -> f32 + Sync) -> CubeMap {
+    let src_tiles = make_tiles(sres, TILE_SIDE);
+    let packed = pack_tiles(sres, &src_tiles, None);
+    let n_src = 6 * sres * sres;
+    let data = fold_rows(
+        sres,
+        g_out.res,
+        cone_angle,
+        &src_tiles,
+        || (vec![Vec3::ZERO; n_src], Vec::<[f32; LANES]>::new()),
+        |(acc, row_w), o, r, fine| {
+            // The row's weights once (lanes, vectorised), then normalise and scatter.
+            row_w.clear();
+            let mut wsum = [0.0f32; LANES];
+            for &t in fine {
+                let p = &packed[t];
+                let mut w = [0.0f32; LANES];
+                for k in 0..LANES {
+                    w[k] = weight(Vec3::new(p.x[k], p.y[k], p.z[k]), r, p.area[k]);
+                    wsum[k] += w[k];
+                }
+                row_w.push(w);
+            }
+            let wsum: f32 = wsum.iter().sum();
+            if wsum <= 0.0 {
+                return;
+            }
+            let g = g_out.data[o] / wsum;
+            for (&t, w) in fine.iter().zip(row_w.iter()) {
+                let p = &packed[t];
+                for k in 0..LANES {
+                    if w[k] > 0.0 {
+                        acc[p.index[k] as usize] += g * w[k];
+                    }
+                }
+            }
+        },
+        |(mut a, buf), (b, _)| {
+            a.iter_mut().zip(b).for_each(|(x, y)| *x += y);
+            (a, buf)
+        },
+    )
+    .0;
+    CubeMap { res: sres, data }
+}
+
+/// Normalised kernel filter: output texel r of an `out_res` map gets ∑ w(l, r)·src(l) / ∑ w(l, r)
+/// over source texels l, where `weight(l, r, Ω_l)` already includes the solid angle and vanishes
+/// beyond `cone_angle` from r.
+fn kernel_filter(src: &CubeMap, out_res: usize, cone_angle: f32, weight: impl Fn(Vec3, Vec3, f32) -> f32 + Sync) -> CubeMap {
+    let src_tiles = make_tiles(src.res, TILE_SIDE);
+    let packed = pack_tiles(src.res, &src_tiles, Some(&src.data));
+    let data = filter_rows(src.res, out_res, cone_angle, &src_tiles, |r, fine| {
+        // Per-lane accumulators: a float sum across lanes would block vectorisation.
+        let (mut aw, mut ar, mut ag, mut ab) = ([0.0f32; LANES], [0.0f32; LANES], [0.0f32; LANES], [0.0f32; LANES]);
+        for &t in fine {
+            let p = &packed[t];
+            for k in 0..LANES {
+                // Branch-free: about half the candidates lie outside the cone, and a
+                // mispredicted branch costs more than the multiply-adds.
+                let w = weight(Vec3::new(p.x[k], p.y[k], p.z[k]), r, p.area[k]);
+                aw[k] += w;
+                ar[k] += w * p.value[0][k];
+                ag[k] += w * p.value[1][k];
+                ab[k] += w * p.value[2][k];
+            }
+        }
+        let wsum: f32 = aw.iter().sum();
+        let sum = Vec3::new(ar.iter().sum(), ag.iter().sum(), ab.iter().sum());
+        if wsum > 0.0 {
+            sum / wsum
+        } else {
+            Vec3::ZERO
+        }
+    });
     CubeMap { res: out_res, data }
 }
 
-/// `src` convolved with the GGX lobe of `roughness` (n = v = r), sampled at `out_res`².
-pub fn prefilter_specular(src: &CubeMap, out_res: usize, roughness: f32, kernel_mass: f32) -> CubeMap {
+/// A fixed linear map between two cube maps in sparse row form: output texel o (flat index) is
+/// ∑ weight[e]·src[index[e]] over e ∈ offsets[o]..offsets[o+1], the same for each RGB channel.
+/// The weights are the normalised ones of [`kernel_filter`], so applying the stencil reproduces
+/// the filter (up to float summation order), and its transpose is the filter's adjoint.
+#[derive(Clone, Debug)]
+pub struct Stencil {
+    pub src_res: usize,
+    pub out_res: usize,
+    pub offsets: Vec<usize>,
+    pub index: Vec<u32>,
+    pub weight: Vec<f32>,
+}
+
+impl Stencil {
+    /// Entries (source texel, weight) of output texel `o`.
+    pub fn row(&self, o: usize) -> impl Iterator<Item = (usize, f32)> + '_ {
+        let (a, b) = (self.offsets[o], self.offsets[o + 1]);
+        self.index[a..b].iter().zip(&self.weight[a..b]).map(|(&i, &w)| (i as usize, w))
+    }
+
+    pub fn nnz(&self) -> usize {
+        self.index.len()
+    }
+
+    /// The transposed map (source ↔ output), entries of each row in increasing output order.
+    pub fn transpose(&self) -> Stencil {
+        let n_src = 6 * self.src_res * self.src_res;
+        let mut counts = vec![0usize; n_src + 1];
+        for &i in &self.index {
+            counts[i as usize + 1] += 1;
+        }
+        for k in 0..n_src {
+            counts[k + 1] += counts[k];
+        }
+        let offsets = counts.clone();
+        let mut fill = counts;
+        let mut index = vec![0u32; self.nnz()];
+        let mut weight = vec![0.0f32; self.nnz()];
+        for o in 0..self.offsets.len() - 1 {
+            for (i, w) in self.row(o) {
+                index[fill[i]] = o as u32;
+                weight[fill[i]] = w;
+                fill[i] += 1;
+            }
+        }
+        Stencil { src_res: self.out_res, out_res: self.src_res, offsets, index, weight }
+    }
+}
+
+/// The stencil of [`kernel_filter`] for a `sres`² source: same culling, same weights (zero ones
+/// dropped), normalised per row.
+fn kernel_stencil(sres: usize, out_res: usize, cone_angle: f32, weight: impl Fn(Vec3, Vec3, f32) -> f32 + Sync) -> Stencil {
+    let src_tiles = make_tiles(sres, TILE_SIDE);
+    let packed = pack_tiles(sres, &src_tiles, None);
+    let rows = filter_rows(sres, out_res, cone_angle, &src_tiles, |r, fine| {
+        let mut row: Vec<(u32, f32)> = Vec::new();
+        for &t in fine {
+            let p = &packed[t];
+            // Weights of all lanes first (branch-free, vectorises), then keep the non-zero ones.
+            let mut w = [0.0f32; LANES];
+            for k in 0..LANES {
+                w[k] = weight(Vec3::new(p.x[k], p.y[k], p.z[k]), r, p.area[k]);
+            }
+            row.extend((0..LANES).filter(|&k| w[k] > 0.0).map(|k| (p.index[k], w[k])));
+        }
+        let wsum: f32 = row.iter().map(|e| e.1).sum();
+        row.iter_mut().for_each(|e| e.1 /= wsum);
+        row
+    });
+    let mut offsets = Vec::with_capacity(rows.len() + 1);
+    offsets.push(0);
+    let (mut index, mut weight) = (Vec::new(), Vec::new());
+    for row in rows {
+        for (i, w) in row {
+            index.push(i);
+            weight.push(w);
+        }
+        offsets.push(index.len());
+    }
+    Stencil { src_res: sres, out_res, offsets, index, weight }
+}
+
+/// The GGX prefilter kernel of `roughness` for `kernel_mass`: its cut-off cone angle and weight.
+fn specular_kernel(roughness: f32, kernel_mass: f32) -> (f32, impl Fn(Vec3, Vec3, f32) -> f32 + Sync) {
     let alpha = alpha_from_roughness(roughness);
     let sin2_cut = lobe_cutoff_sin2(alpha, kernel_mass);
     // θ_l = 2θ_h; a small slack covers the texel-centre test at the cone's rim.
     let cone = 2.0 * sin2_cut.sqrt().asin() + 1e-4;
     let a2 = alpha * alpha;
-    kernel_filter(src, out_res, cone, move |l, r, area| {
+    let weight = move |l: Vec3, r: Vec3, area: f32| {
         // ggx_lobe_weight inlined without branches (s ≤ sin2_cut ≤ ½ implies l·r ≥ 0).
         let s = (l - r).length_squared() * 0.25;
         let d = a2 * (1.0 - s) + s;
         let w = (1.0 - 2.0 * s) * a2 / (std::f32::consts::PI * d * d) * 0.25 * area;
-        if s <= sin2_cut { w } else { 0.0 }
-    })
+        if s <= sin2_cut {
+            w
+        } else {
+            0.0
+        }
+    };
+    (cone, weight)
+}
+
+/// Cone and weight of the cosine (irradiance) kernel.
+const IRRADIANCE_CONE: f32 = std::f32::consts::FRAC_PI_2 + 1e-3;
+fn irradiance_weight(l: Vec3, n: Vec3, area: f32) -> f32 {
+    l.dot(n).max(0.0) * area
+}
+
+/// `src` convolved with the GGX lobe of `roughness` (n = v = r), sampled at `out_res`².
+pub fn prefilter_specular(src: &CubeMap, out_res: usize, roughness: f32, kernel_mass: f32) -> CubeMap {
+    let (cone, weight) = specular_kernel(roughness, kernel_mass);
+    kernel_filter(src, out_res, cone, weight)
+}
+
+/// The linear map of [`prefilter_specular`] from a `src_res`² map, as a stencil.
+pub fn prefilter_specular_stencil(src_res: usize, out_res: usize, roughness: f32, kernel_mass: f32) -> Stencil {
+    let (cone, weight) = specular_kernel(roughness, kernel_mass);
+    kernel_stencil(src_res, out_res, cone, weight)
+}
+
+/// Adjoint of [`prefilter_specular`] from a `src_res`² source: ∂L/∂src from ∂L/∂out, matrix-free.
+pub fn prefilter_specular_adjoint(g_out: &CubeMap, src_res: usize, roughness: f32, kernel_mass: f32) -> CubeMap {
+    let (cone, weight) = specular_kernel(roughness, kernel_mass);
+    kernel_filter_adjoint(g_out, src_res, cone, weight)
+}
+
+/// Adjoint of [`irradiance`], matrix-free.
+pub fn irradiance_adjoint(g_out: &CubeMap) -> CubeMap {
+    kernel_filter_adjoint(g_out, g_out.res, IRRADIANCE_CONE, irradiance_weight)
 }
 
 /// Cosine-weighted mean of the radiance over each output texel's hemisphere (= irradiance/π),
 /// at the resolution of `src`.
 pub fn irradiance(src: &CubeMap) -> CubeMap {
-    kernel_filter(src, src.res, std::f32::consts::FRAC_PI_2 + 1e-3, |l, n, area| l.dot(n).max(0.0) * area)
+    kernel_filter(src, src.res, IRRADIANCE_CONE, irradiance_weight)
+}
+
+/// The linear map of [`irradiance`] on a `res`² map, as a stencil.
+pub fn irradiance_stencil(res: usize) -> Stencil {
+    kernel_stencil(res, res, IRRADIANCE_CONE, irradiance_weight)
+}
+
+/// Resolutions of [`mip_chain`] for a `base_res`² base (a repeated resolution is a copy).
+pub fn mip_chain_res(base_res: usize) -> Vec<usize> {
+    let mut res = vec![base_res];
+    while let Some(&last) = res.last() {
+        if last <= LIGHT_MIN_RES || last % 2 != 0 {
+            break;
+        }
+        res.push(last / 2);
+    }
+    if res.len() == 1 {
+        res.push(base_res);
+    }
+    res
 }
 
 /// Index of the coarsest chain level (not finer than `level`) whose texels still put
 /// `texels_per_core` texels across the lobe core of `roughness`.
-fn source_level(chain: &[CubeMap], level: usize, roughness: f32, texels_per_core: f32) -> usize {
+fn source_level(chain_res: &[usize], level: usize, roughness: f32, texels_per_core: f32) -> usize {
     let alpha = alpha_from_roughness(roughness);
     // L-angle where tanθ_h = α (D has fallen to ¼ of its peak), on both sides of the centre.
     let core = 4.0 * alpha.atan();
     let mut best = level;
-    for (k, m) in chain.iter().enumerate().skip(level) {
-        let texel_angle = 2.0 / m.res as f32;
+    for (k, &res) in chain_res.iter().enumerate().skip(level) {
+        let texel_angle = 2.0 / res as f32;
         if texel_angle * texels_per_core <= core {
             best = k;
         }
     }
     best
+}
+
+/// For each specular level of a chain with resolutions `chain_res`: the chain level it is
+/// filtered from (see the module doc).
+pub fn specular_sources(chain_res: &[usize], opts: PrefilterOptions) -> Vec<usize> {
+    let roughness = level_roughness(chain_res.len());
+    (0..chain_res.len()).map(|k| source_level(chain_res, k, roughness[k], opts.texels_per_core)).collect()
 }
 
 impl SplitSumLight {
@@ -309,11 +556,11 @@ impl SplitSumLight {
         let chain = mip_chain(base);
         let roughness = level_roughness(chain.len());
         let diffuse = irradiance(&chain[chain.len() - 1]);
-        let specular = (0..chain.len())
-            .map(|k| {
-                let src = source_level(&chain, k, roughness[k], opts.texels_per_core);
-                prefilter_specular(&chain[src], chain[k].res, roughness[k], opts.kernel_mass)
-            })
+        let chain_res: Vec<usize> = chain.iter().map(|m| m.res).collect();
+        let specular = specular_sources(&chain_res, opts)
+            .into_iter()
+            .enumerate()
+            .map(|(k, src)| prefilter_specular(&chain[src], chain[k].res, roughness[k], opts.kernel_mass))
             .collect();
         SplitSumLight { specular, level_roughness: roughness, diffuse }
     }
@@ -377,5 +624,51 @@ mod tests {
             inside += a2 / (std::f64::consts::PI * d * d) * c * th.sin() * 2.0 * std::f64::consts::PI * cut / n as f64;
         }
         assert!((inside - 0.9).abs() < 1e-3, "{inside}");
+    }
+
+    #[test]
+    fn stencils_reproduce_the_filters_and_transpose_exactly() {
+        use crate::rng::Sampler;
+        let mut rng = Sampler::from_seed(9);
+        let mut src = CubeMap::constant(16, Vec3::ZERO);
+        for v in src.data.iter_mut() {
+            *v = Vec3::new(rng.next_f32(), rng.next_f32(), 4.0 * rng.next_f32());
+        }
+        let apply = |st: &Stencil, m: &CubeMap| -> Vec<Vec3> {
+            (0..6 * st.out_res * st.out_res).map(|o| st.row(o).map(|(i, w)| m.data[i] * w).sum()).collect()
+        };
+        for (st, reference) in [
+            (prefilter_specular_stencil(16, 8, 0.3, 0.95), prefilter_specular(&src, 8, 0.3, 0.95)),
+            (irradiance_stencil(16), irradiance(&src)),
+        ] {
+            let got = apply(&st, &src);
+            for (a, b) in got.iter().zip(&reference.data) {
+                assert!((*a - *b).abs().max_element() < 1e-5 * b.abs().max_element().max(1.0), "{a} vs {b}");
+            }
+            // Transpose: the same entries, seen from the source side; the matrix-free adjoint agrees.
+            let t = st.transpose();
+            let mut g = CubeMap::constant(st.out_res, Vec3::ZERO);
+            for v in g.data.iter_mut() {
+                *v = Vec3::new(rng.next_f32() - 0.5, rng.next_f32(), 2.0 * rng.next_f32());
+            }
+            let adjoint = if st.out_res == 8 { prefilter_specular_adjoint(&g, 16, 0.3, 0.95) } else { irradiance_adjoint(&g) };
+            let via_t = apply(&t, &g);
+            let scale = via_t.iter().map(|v| v.abs().max_element()).fold(0.0f32, f32::max);
+            for (a, b) in adjoint.data.iter().zip(&via_t) {
+                assert!((*a - *b).abs().max_element() < 1e-5 * scale, "{a} vs {b}");
+            }
+            assert_eq!(t.nnz(), st.nnz());
+            let mut rng = Sampler::from_seed(4);
+            for _ in 0..50 {
+                let o = (rng.next_f32() * (6 * st.out_res * st.out_res) as f32) as usize;
+                for (i, w) in st.row(o) {
+                    assert!(t.row(i).any(|(o2, w2)| o2 == o && w2 == w));
+                }
+            }
+        }
+        assert_eq!(mip_chain_res(128), vec![128, 64, 32, 16]);
+        assert_eq!(mip_chain_res(8), vec![8, 8]);
+        assert_eq!(mip_chain_res(24), vec![24, 12]);
+        assert_eq!(mip_chain(&CubeMap::constant(24, Vec3::ONE)).iter().map(|m| m.res).collect::<Vec<_>>(), vec![24, 12]);
     }
 }

@@ -5,4 +5,5 @@ pub mod effects;
 pub mod gbuffer;
 pub mod montecarlo;
 pub mod splitsum;
+pub mod splitsum_op;
 pub mod view;
