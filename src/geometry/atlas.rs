@@ -419,31 +419,54 @@ fn edge_neighbours(mesh: &Mesh) -> Vec<[u32; 3]> {
 }
 
 /// Flood fill over shared edges while a face stays within the normal cone of the chart's seed.
+/// Growth is best-first by distance from the seed and stops once the nearest candidate lies
+/// farther than `COMPACTNESS`·√(chart area): charts stay disc-like instead of long wavy strips
+/// (a tube's top strip stays inside the cone for its whole length), which fill their boxes well.
 /// Degenerate faces join whichever chart reaches them; leftovers share one point-sized chart.
 fn grow_charts(mesh: &Mesh, unit: &[Vec3], degenerate: &[bool], neighbours: &[[u32; 3]]) -> Vec<Vec<u32>> {
+    use std::cmp::Reverse;
+    use std::collections::BinaryHeap;
+    const COMPACTNESS: f32 = 1.0;
     let cos_cone = CHART_CONE_DEGREES.to_radians().cos();
+    let centroid = |t: usize| mesh.triangle_positions(t).iter().sum::<Vec3>() / 3.0;
     let mut chart_of = vec![u32::MAX; mesh.triangles.len()];
     let mut charts: Vec<Vec<u32>> = Vec::new();
+    let mut heap: BinaryHeap<(Reverse<u32>, u32)> = BinaryHeap::new();
     for seed in 0..mesh.triangles.len() {
         if chart_of[seed] != u32::MAX || degenerate[seed] {
             continue;
         }
         let id = charts.len() as u32;
-        let seed_normal = unit[seed];
+        let (seed_normal, seed_centre) = (unit[seed], centroid(seed));
+        let [p0, p1, p2] = mesh.triangle_positions(seed);
+        // Slack of a few seed edges so that slivers can start a chart.
+        let slack = 2.0 * (p1 - p0).length().max((p2 - p1).length()).max((p0 - p2).length());
         let mut members = vec![seed as u32];
+        let mut area = 0.5 * mesh.face_normal_scaled(seed).length();
         chart_of[seed] = id;
-        let mut head = 0;
-        while head < members.len() && members.len() < MAX_CHART_TRIANGLES {
-            let t = members[head] as usize;
-            head += 1;
+        heap.clear();
+        let push = |heap: &mut BinaryHeap<(Reverse<u32>, u32)>, t: usize| {
             for &n in &neighbours[t] {
-                if n == u32::MAX || chart_of[n as usize] != u32::MAX || members.len() >= MAX_CHART_TRIANGLES {
-                    continue;
+                if n != u32::MAX {
+                    // Non-negative f32 order equals the order of their bit patterns.
+                    heap.push((Reverse((centroid(n as usize) - seed_centre).length().to_bits()), n));
                 }
-                if degenerate[n as usize] || unit[n as usize].dot(seed_normal) >= cos_cone {
-                    chart_of[n as usize] = id;
-                    members.push(n);
-                }
+            }
+        };
+        push(&mut heap, seed);
+        while let Some((Reverse(dist_bits), n)) = heap.pop() {
+            if members.len() >= MAX_CHART_TRIANGLES || f32::from_bits(dist_bits) > COMPACTNESS * area.sqrt() + slack {
+                break;
+            }
+            let n = n as usize;
+            if chart_of[n] != u32::MAX {
+                continue;
+            }
+            if degenerate[n] || unit[n].dot(seed_normal) >= cos_cone {
+                chart_of[n] = id;
+                members.push(n as u32);
+                area += 0.5 * mesh.face_normal_scaled(n).length();
+                push(&mut heap, n);
             }
         }
         charts.push(members);
@@ -485,6 +508,29 @@ fn project(mesh: &Mesh, chart: &[u32], normals: &[Vec3], degenerate: &[bool]) ->
         let t = n.cross(s);
         chart.iter().map(|&f| mesh.triangle_positions(f as usize).map(|p| Vec2::new(p.dot(s), p.dot(t)))).collect()
     };
+    // Turn the chart so that its bounding box has minimal area (one side along a hull edge).
+    let hull = convex_hull(corners.iter().flatten().copied().collect());
+    let mut best = (f32::INFINITY, Vec2::X);
+    for i in 0..hull.len() {
+        let Some(dir) = (hull[(i + 1) % hull.len()] - hull[i]).try_normalize() else { continue };
+        let (mut lo, mut hi) = (Vec2::splat(f32::INFINITY), Vec2::splat(f32::NEG_INFINITY));
+        for p in &hull {
+            let q = Vec2::new(p.dot(dir), dir.perp_dot(*p));
+            lo = lo.min(q);
+            hi = hi.max(q);
+        }
+        let area = (hi - lo).x * (hi - lo).y;
+        if area < best.0 {
+            best = (area, dir);
+        }
+    }
+    let dir = best.1;
+    // A rotation (x, y) -> (x·d + y·d⊥) keeps the winding.
+    for tri in &mut corners {
+        for p in tri.iter_mut() {
+            *p = Vec2::new(p.dot(dir), dir.perp_dot(*p));
+        }
+    }
     let lo = corners.iter().flatten().fold(Vec2::splat(f32::INFINITY), |m, p| m.min(*p));
     let hi = corners.iter().flatten().fold(Vec2::splat(f32::NEG_INFINITY), |m, p| m.max(*p));
     let mut size = hi - lo;
@@ -500,6 +546,29 @@ fn project(mesh: &Mesh, chart: &[u32], normals: &[Vec3], degenerate: &[bool]) ->
         size = Vec2::new(size.y, size.x);
     }
     Projected { tris: chart.to_vec(), corners, size }
+}
+
+/// Convex hull (Andrew's monotone chain), counter-clockwise, without collinear points.
+fn convex_hull(mut points: Vec<Vec2>) -> Vec<Vec2> {
+    points.retain(|p| p.is_finite());
+    points.sort_by(|a, b| a.x.total_cmp(&b.x).then(a.y.total_cmp(&b.y)));
+    points.dedup();
+    if points.len() < 3 {
+        return points;
+    }
+    let mut hull: Vec<Vec2> = Vec::with_capacity(points.len() + 1);
+    for pass in 0..2 {
+        let start = hull.len();
+        let iter: Box<dyn Iterator<Item = &Vec2>> = if pass == 0 { Box::new(points.iter()) } else { Box::new(points.iter().rev()) };
+        for &p in iter {
+            while hull.len() >= start + 2 && (hull[hull.len() - 1] - hull[hull.len() - 2]).perp_dot(p - hull[hull.len() - 2]) <= 0.0 {
+                hull.pop();
+            }
+            hull.push(p);
+        }
+        hull.pop();
+    }
+    hull
 }
 
 /// Choose a common texel density and shelf-pack the charts' padded boxes into `res`².
@@ -518,6 +587,12 @@ fn pack(charts: &[Projected], res: usize, total_area: f64) -> Result<(f32, Vec<V
             .collect();
         order.sort_by_key(|&i| std::cmp::Reverse((boxes[i].1, boxes[i].0)));
         if let Some(origins) = shelf_pack(&boxes, &order, res) {
+            if std::env::var_os("ATLAS_DEBUG").is_some() {
+                let padded: usize = boxes.iter().map(|(w, h)| w * h).sum();
+                let content: f32 = charts.iter().map(|c| c.size.x * c.size.y * density * density).sum();
+                let tri: f32 = charts.iter().flat_map(|c| c.corners.iter()).map(|[a, b, c]| 0.5 * (*b - *a).perp_dot(*c - *a) * density * density).sum();
+                eprintln!("pack: padded boxes {:.3}, content boxes {:.3}, triangles {:.3} of atlas", padded as f32 / (res * res) as f32, content / (res * res) as f32, tri / (res * res) as f32);
+            }
             return Ok((density, origins));
         }
         density *= 0.97;
