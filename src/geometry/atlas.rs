@@ -586,7 +586,7 @@ fn pack(charts: &[Projected], res: usize, total_area: f64) -> Result<(f32, Vec<V
             })
             .collect();
         order.sort_by_key(|&i| std::cmp::Reverse((boxes[i].1, boxes[i].0)));
-        if let Some(origins) = shelf_pack(&boxes, &order, res) {
+        if let Some(origins) = skyline_pack(&boxes, &order, res) {
             if std::env::var_os("ATLAS_DEBUG").is_some() {
                 let padded: usize = boxes.iter().map(|(w, h)| w * h).sum();
                 let content: f32 = charts.iter().map(|c| c.size.x * c.size.y * density * density).sum();
@@ -600,6 +600,58 @@ fn pack(charts: &[Projected], res: usize, total_area: f64) -> Result<(f32, Vec<V
     bail!("UV atlas: {} charts do not fit a {res}² atlas even at low texel density", charts.len())
 }
 
+/// Skyline bottom-left packing: each box goes where its top edge ends lowest (then leftmost),
+/// resting on the skyline of the boxes below. Returns content origins (box corner + PADDING).
+fn skyline_pack(boxes: &[(usize, usize)], order: &[usize], res: usize) -> Option<Vec<Vec2>> {
+    // Segments (x, height) in increasing x; segment i spans [x_i, x_{i+1}) (the last one to res).
+    let mut sky: Vec<(usize, usize)> = vec![(0, 0)];
+    let mut origins = vec![Vec2::ZERO; boxes.len()];
+    for &i in order {
+        let (w, h) = boxes[i];
+        if w > res || h > res {
+            return None;
+        }
+        let mut best: Option<(usize, usize, usize)> = None; // (top, x, first segment)
+        for start in 0..sky.len() {
+            let x = sky[start].0;
+            if x + w > res {
+                break;
+            }
+            let mut y = 0;
+            let mut k = start;
+            while k < sky.len() && sky[k].0 < x + w {
+                y = y.max(sky[k].1);
+                k += 1;
+            }
+            if y + h <= res && best.is_none_or(|(top, bx, _)| (y + h, x) < (top, bx)) {
+                best = Some((y + h, x, start));
+            }
+        }
+        let (top, x, start) = best?;
+        origins[i] = Vec2::new((x + PADDING) as f32, (top - h + PADDING) as f32);
+        // Replace the covered span [x, x + w) by one segment at `top`.
+        let end_x = x + w;
+        let mut k = start;
+        let mut tail_height = None;
+        while k < sky.len() && sky[k].0 < end_x {
+            tail_height = Some(sky[k].1);
+            k += 1;
+        }
+        let next_x = sky.get(k).map(|s| s.0).unwrap_or(res);
+        let mut replacement = vec![(x, top)];
+        if end_x < next_x {
+            if let Some(th) = tail_height {
+                replacement.push((end_x, th));
+            }
+        }
+        sky.splice(start..k, replacement);
+        sky.dedup_by(|b, a| a.1 == b.1);
+    }
+    Some(origins)
+}
+
+/// Shelf packing (kept as the simple reference the skyline packer is compared with in tests).
+#[cfg(test)]
 fn shelf_pack(boxes: &[(usize, usize)], order: &[usize], res: usize) -> Option<Vec<Vec2>> {
     let mut origins = vec![Vec2::ZERO; boxes.len()];
     let (mut x, mut y, mut shelf) = (0usize, 0usize, 0usize);
@@ -691,5 +743,21 @@ mod tests {
             }
         }
         assert!(shelf_pack(&boxes, &order, 32).is_none());
+        // The skyline packer obeys the same rules and needs no more height than shelves.
+        let sky = skyline_pack(&boxes, &order, 128).expect("fits");
+        let top = |o: &[Vec2]| (0..boxes.len()).map(|i| o[i].y as usize - PADDING + boxes[i].1).max().unwrap();
+        assert!(top(&sky) <= top(&origins), "skyline {} vs shelves {}", top(&sky), top(&origins));
+        for i in 0..boxes.len() {
+            let r = |j: usize| {
+                let o = sky[j] - Vec2::splat(PADDING as f32);
+                (o.x as usize, o.y as usize, o.x as usize + boxes[j].0, o.y as usize + boxes[j].1)
+            };
+            let (x0, y0, x1, y1) = r(i);
+            assert!(x1 <= 128 && y1 <= 128);
+            for j in 0..i {
+                let (u0, v0, u1, v1) = r(j);
+                assert!(x1 <= u0 || u1 <= x0 || y1 <= v0 || v1 <= y0, "skyline boxes {i} and {j} overlap");
+            }
+        }
     }
 }
