@@ -126,10 +126,40 @@ fn generated_atlas_is_overlap_free_and_keeps_the_geometry() {
         if a3 > 1e-9 {
             let [a, b, c] = out.triangles[t].map(|i| out.uvs[i as usize]);
             let ratio = 0.5 * (b - a).perp_dot(c - a).abs() / (a3 * density * density);
-            assert!(ratio <= 1.0 + 1e-3 && ratio >= 0.3, "triangle {t}: UV/3D area ratio {ratio}");
+            assert!((0.3..=1.0 + 1e-3).contains(&ratio), "triangle {t}: UV/3D area ratio {ratio}");
         }
     }
     assert!(atlas.stats.utilisation > 0.3, "utilisation {}", atlas.stats.utilisation);
+}
+
+#[test]
+fn degenerate_triangles_get_an_atlas_too() {
+    let mut m = multi_part_mesh();
+    // A part of zero-area faces: a point, a collinear sliver, and a repeated vertex index.
+    let base = m.positions.len() as u32;
+    for p in [Vec3::new(3.0, 0.0, 0.0), Vec3::new(3.5, 0.0, 0.0), Vec3::new(4.0, 0.0, 0.0)] {
+        m.positions.push(p);
+        m.normals.push(Vec3::Z);
+        m.uvs.push(Vec2::ZERO);
+    }
+    m.parts.push(reconstruct::geometry::Part { name: "slivers".into(), material: 0, has_uv: false });
+    let part = (m.parts.len() - 1) as u32;
+    for tri in [[base, base, base], [base, base + 1, base + 2], [base, base + 2, base + 2]] {
+        m.triangles.push(tri);
+        m.triangle_part.push(part);
+    }
+    // And a zero-area face inside a textured part (its corners on existing vertices).
+    m.triangles.push([0, 0, 1]);
+    m.triangle_part.push(0);
+    let atlas = build(&m, 256).unwrap();
+    atlas.mesh.validate().unwrap();
+    assert_eq!(own_uvs_problem(&atlas.mesh), None);
+    assert!(atlas.mesh.uvs.iter().all(|uv| uv.is_finite() && uv.min_element() >= 0.0 && uv.max_element() <= 1.0));
+    for t in 0..m.triangles.len() {
+        assert_eq!(atlas.mesh.triangle_positions(t), m.triangle_positions(t));
+    }
+    assert_eq!(atlas.stats.zero_uv_area_triangles, 0);
+    MaterialTextures::bake_from(&m, &atlas, 256).unwrap();
 }
 
 #[test]
