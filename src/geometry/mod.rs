@@ -1,5 +1,6 @@
 //! Meshes, their files (OBJ via tobj, glTF via gltf), and ray queries through a BVH (obvhs).
 
+pub mod atlas;
 pub mod bvh;
 pub mod gltf_io;
 pub mod mesh;

@@ -2,5 +2,6 @@
 
 pub mod brdf;
 mod part;
+pub mod texture_maps;
 
 pub use part::{BaseColor, PartMaterial, SurfaceParams};

@@ -1,0 +1,192 @@
+//! Material textures on the mesh's UV atlas: `kd` (linear base colour) and `ks` = (occlusion = 0,
+//! roughness, metallic), NVDiffRec's layout. Baking from a per-part material gives ground truth
+//! for evaluation and an oracle start for the optimiser.
+
+use std::path::Path;
+
+use anyhow::{bail, Context, Result};
+use glam::{Vec2, Vec3};
+use rayon::prelude::*;
+
+use crate::geometry::atlas::{texel_hits, Atlas};
+use crate::geometry::Mesh;
+use crate::image::io::{read_png, write_png};
+use crate::image::Image;
+use crate::material::SurfaceParams;
+
+/// Texels a bilinear lookup inside a chart can touch lie within √2 texels of it.
+const CONSERVATIVE_REACH: f32 = 1.5;
+/// Extra texels grown beyond the conservative coverage when baking (mip-mapping, jittered lookups).
+const BAKE_DILATION: usize = 4;
+
+#[derive(Clone, Debug, PartialEq)]
+pub struct MaterialTextures {
+    /// Linear base colour, [res, res, 3], row 0 at the top (v = 1).
+    pub kd: Image,
+    /// (occlusion = 0, roughness, metallic), [res, res, 3].
+    pub ks: Image,
+}
+
+impl MaterialTextures {
+    /// Uniform textures (the usual start of an optimisation).
+    pub fn constant(res: usize, kd: Vec3, roughness: f32, metallic: f32) -> Self {
+        MaterialTextures { kd: Image::filled(res, res, &kd.to_array()), ks: Image::filled(res, res, &[0.0, roughness, metallic]) }
+    }
+
+    pub fn resolution(&self) -> usize {
+        self.kd.width
+    }
+
+    /// Rasterise every atlas triangle and evaluate the ORIGINAL mesh's part material at the
+    /// barycentric-interpolated original UV. `mesh` is the mesh the atlas was built from (same
+    /// triangle order). Texels a bilinear lookup can touch are filled conservatively from the
+    /// closest point of their chart; the rest of the border is dilated by a few texels.
+    pub fn bake_from(mesh: &Mesh, atlas: &Atlas, res: usize) -> Result<Self> {
+        if mesh.triangles.len() != atlas.mesh.triangles.len() {
+            bail!("bake: the atlas has {} triangles but the material mesh has {}", atlas.mesh.triangles.len(), mesh.triangles.len());
+        }
+        mesh.validate().map_err(|e| anyhow::anyhow!("bake: invalid material mesh: {e}"))?;
+        let hits = texel_hits(&atlas.mesh, res, CONSERVATIVE_REACH);
+        let mut kd = Image::new(res, res, 3);
+        let mut ks = Image::new(res, res, 3);
+        kd.data.par_chunks_mut(3).zip(ks.data.par_chunks_mut(3)).zip(hits.par_iter()).for_each(|((kd, ks), hit)| {
+            if let Some(h) = hit {
+                let [a, b, c] = mesh.triangles[h.triangle as usize].map(|i| mesh.uvs[i as usize]);
+                let uv = a * h.bary.x + b * h.bary.y + c * h.bary.z;
+                let p = mesh.triangle_material(h.triangle as usize).eval(uv);
+                kd.copy_from_slice(&p.kd.to_array());
+                ks.copy_from_slice(&[0.0, p.roughness, p.metallic]);
+            }
+        });
+        let mask: Vec<bool> = hits.iter().map(Option::is_some).collect();
+        dilate(&mut kd, &mask, BAKE_DILATION);
+        dilate(&mut ks, &mask, BAKE_DILATION);
+        Ok(MaterialTextures { kd, ks })
+    }
+
+    /// Bilinear lookup at an atlas UV (OBJ convention, v = 0 at the bottom row; clamped to the
+    /// edge, not wrapped: an atlas does not tile).
+    pub fn eval(&self, uv: Vec2) -> SurfaceParams {
+        let (u, v) = (uv.x.clamp(0.0, 1.0), 1.0 - uv.y.clamp(0.0, 1.0));
+        let (mut kd, mut ks) = ([0.0f32; 3], [0.0f32; 3]);
+        self.kd.bilinear(u * self.kd.width as f32, v * self.kd.height as f32, &mut kd);
+        self.ks.bilinear(u * self.ks.width as f32, v * self.ks.height as f32, &mut ks);
+        SurfaceParams { kd: Vec3::from_array(kd), roughness: ks[1], metallic: ks[2] }
+    }
+
+    /// Write `kd.png` (sRGB-encoded) and `ks.png` (linear) into `dir` (created if missing).
+    pub fn save(&self, dir: impl AsRef<Path>) -> Result<()> {
+        let dir = dir.as_ref();
+        std::fs::create_dir_all(dir).with_context(|| format!("cannot create texture folder {}", dir.display()))?;
+        write_png(&dir.join("kd.png"), &self.kd.linear_to_srgb())?;
+        write_png(&dir.join("ks.png"), &self.ks)
+    }
+
+    /// Read textures written by `save`.
+    pub fn load(dir: impl AsRef<Path>) -> Result<Self> {
+        let dir = dir.as_ref();
+        let rgb = |name: &str| -> Result<Image> {
+            let path = dir.join(name);
+            let img = read_png(&path)?;
+            if img.channels != 3 {
+                bail!("{}: expected an RGB texture, found {} channels", path.display(), img.channels);
+            }
+            if img.width != img.height {
+                bail!("{}: expected a square texture, found {}x{}", path.display(), img.width, img.height);
+            }
+            Ok(img)
+        };
+        let kd = rgb("kd.png")?.srgb_to_linear();
+        let ks = rgb("ks.png")?;
+        if kd.width != ks.width {
+            bail!("{}: kd.png is {}² but ks.png is {}²", dir.display(), kd.width, ks.width);
+        }
+        Ok(MaterialTextures { kd, ks })
+    }
+}
+
+/// Grow the texels marked in `mask` outward by `texels` rings: each new texel takes the mean of
+/// its already-filled 8-neighbours. Filled texels never change, so dilation cannot bleed one
+/// chart's values into another's texels.
+pub fn dilate(img: &mut Image, mask: &[bool], texels: usize) {
+    assert_eq!(mask.len(), img.pixel_count(), "dilate: mask and image sizes differ");
+    let (w, h, ch) = (img.width, img.height, img.channels);
+    let mut filled = mask.to_vec();
+    for _ in 0..texels {
+        let grown: Vec<(usize, Vec<f32>)> = (0..w * h)
+            .into_par_iter()
+            .filter(|&i| !filled[i])
+            .filter_map(|i| {
+                let (x, y) = ((i % w) as isize, (i / w) as isize);
+                let mut sum = vec![0.0f32; ch];
+                let mut n = 0;
+                for dy in -1..=1 {
+                    for dx in -1..=1 {
+                        let (nx, ny) = (x + dx, y + dy);
+                        if nx < 0 || ny < 0 || nx >= w as isize || ny >= h as isize {
+                            continue;
+                        }
+                        let j = ny as usize * w + nx as usize;
+                        if filled[j] {
+                            n += 1;
+                            for (s, v) in sum.iter_mut().zip(&img.data[j * ch..(j + 1) * ch]) {
+                                *s += v;
+                            }
+                        }
+                    }
+                }
+                (n > 0).then(|| (i, sum.into_iter().map(|s| s / n as f32).collect()))
+            })
+            .collect();
+        if grown.is_empty() {
+            break;
+        }
+        for (i, v) in grown {
+            img.data[i * ch..(i + 1) * ch].copy_from_slice(&v);
+            filled[i] = true;
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn dilate_grows_rings_and_keeps_filled_texels() {
+        let mut img = Image::new(7, 7, 1);
+        let mut mask = vec![false; 49];
+        img.data[3 * 7 + 3] = 2.0;
+        mask[3 * 7 + 3] = true;
+        img.data[0] = 9.0; // not in the mask: must be overwritten only if reached
+        dilate(&mut img, &mask, 2);
+        // Two rings around the centre: a 5x5 block of 2.0.
+        for y in 0..7 {
+            for x in 0..7 {
+                let inside = (1..=5).contains(&x) && (1..=5).contains(&y);
+                let v = img.pixel(x, y)[0];
+                if inside {
+                    assert_eq!(v, 2.0, "texel {x},{y}");
+                } else if (x, y) != (0, 0) {
+                    assert_eq!(v, 0.0, "texel {x},{y}");
+                }
+            }
+        }
+        assert_eq!(img.pixel(0, 0)[0], 9.0);
+    }
+
+    #[test]
+    fn eval_follows_the_obj_convention() {
+        // Top row red, bottom row blue: v = 1 is the top.
+        let mut t = MaterialTextures::constant(2, Vec3::ZERO, 0.5, 0.0);
+        for x in 0..2 {
+            t.kd.pixel_mut(x, 0).copy_from_slice(&[1.0, 0.0, 0.0]);
+            t.kd.pixel_mut(x, 1).copy_from_slice(&[0.0, 0.0, 1.0]);
+        }
+        assert_eq!(t.eval(Vec2::new(0.5, 0.99)).kd, Vec3::X);
+        assert_eq!(t.eval(Vec2::new(0.5, 0.01)).kd, Vec3::Z);
+        let mid = t.eval(Vec2::new(0.5, 0.5));
+        assert!((mid.kd - Vec3::new(0.5, 0.0, 0.5)).abs().max_element() < 1e-6);
+        assert_eq!((mid.roughness, mid.metallic), (0.5, 0.0));
+    }
+}
