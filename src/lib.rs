@@ -3,6 +3,7 @@
 
 pub mod color;
 pub mod eval;
+pub mod fit;
 pub mod geometry;
 pub mod image;
 pub mod jobs;

@@ -4,6 +4,8 @@ use std::path::PathBuf;
 
 use anyhow::Result;
 use clap::{Parser, Subcommand, ValueEnum};
+use reconstruct::fit::config::FitConfig;
+use reconstruct::jobs::reconstruct::{run as run_job, GeometrySource, ReconstructOptions};
 use reconstruct::jobs::render::{run, RenderOptions};
 use reconstruct::render::view::ShadingMode;
 
@@ -11,10 +13,74 @@ use reconstruct::render::view::ShadingMode;
 static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
 
 #[derive(Parser)]
-#[command(name = "reconstruct", version, about = "Shape, material and light from multi-view images (NVDiffRecMC-style), guided by IDArb labels")]
+#[command(
+    name = "reconstruct",
+    version,
+    about = "Shape, material and light from multi-view images (NVDiffRecMC-style), guided by IDArb labels",
+    args_conflicts_with_subcommands = true
+)]
 struct Cli {
     #[command(subcommand)]
-    command: Command,
+    command: Option<Command>,
+    #[command(flatten)]
+    reconstruct: ReconstructArgs,
+}
+
+#[derive(Clone, Copy, ValueEnum)]
+enum Geometry {
+    /// The scene's ground-truth mesh.
+    Gt,
+}
+
+#[derive(Clone, Copy, ValueEnum)]
+enum TrainMode {
+    SplitSum,
+    Mc,
+}
+
+/// Optimise materials and light of a scene (the default command).
+#[derive(clap::Args)]
+struct ReconstructArgs {
+    /// Scene name (scenes/NAME.toml) or spec file path.
+    #[arg(long, default_value = "default")]
+    scene: String,
+    /// Data folder overriding the spec's.
+    #[arg(long)]
+    data: Option<PathBuf>,
+    /// Label source of the prior: none, idarb, labels:DIR, oracle, idarb-sim[:LEVEL].
+    #[arg(long, default_value = "none")]
+    prior: String,
+    #[arg(long, value_enum, default_value = "gt")]
+    geometry: Geometry,
+    /// Shading during optimisation.
+    #[arg(long, value_enum, default_value = "split-sum")]
+    mode: TrainMode,
+    /// Monte Carlo samples per pixel and strategy (training).
+    #[arg(long)]
+    spp: Option<u32>,
+    /// Cross-bilateral denoiser on the Monte Carlo buffers.
+    #[arg(long)]
+    denoise: bool,
+    #[arg(long)]
+    iterations: Option<usize>,
+    /// Views per iteration.
+    #[arg(long)]
+    batch: Option<usize>,
+    #[arg(long)]
+    texture_res: Option<usize>,
+    #[arg(long)]
+    light_res: Option<usize>,
+    #[arg(long)]
+    seed: Option<u64>,
+    /// Monte Carlo samples per pixel of the evaluation renders.
+    #[arg(long, default_value_t = 16)]
+    eval_spp: u32,
+    /// Run folder (default: runs/<scene>-<prior>-<mode>). A rerun resumes from its checkpoint.
+    #[arg(long)]
+    out: Option<PathBuf>,
+    /// Hide the progress bar.
+    #[arg(long)]
+    quiet: bool,
 }
 
 #[derive(Clone, Copy, ValueEnum)]
@@ -56,8 +122,28 @@ enum Command {
     },
 }
 
+fn reconstruct(a: ReconstructArgs) -> Result<()> {
+    let mut fit = FitConfig { mode: match a.mode { TrainMode::SplitSum => ShadingMode::SplitSum, TrainMode::Mc => ShadingMode::MonteCarlo }, denoise: a.denoise, ..FitConfig::default() };
+    if let Some(v) = a.spp { fit.spp = v; }
+    if let Some(v) = a.iterations { fit.iterations = v; }
+    if let Some(v) = a.batch { fit.batch = v; }
+    if let Some(v) = a.texture_res { fit.texture_res = v; }
+    if let Some(v) = a.light_res { fit.light_res = v; }
+    if let Some(v) = a.seed { fit.seed = v; }
+    let mode_tag = match fit.mode { ShadingMode::SplitSum => "splitsum", ShadingMode::MonteCarlo => "mc" };
+    let out = a.out.unwrap_or_else(|| PathBuf::from(format!("runs/{}-{}-{mode_tag}", a.scene, a.prior.replace([':', '/'], "_"))));
+    let geometry = match a.geometry { Geometry::Gt => GeometrySource::GroundTruth };
+    let opts = ReconstructOptions { scene: a.scene, data: a.data, geometry, fit, eval_spp: a.eval_spp, out: out.clone(), progress: !a.quiet };
+    let report = run_job(&opts, &a.prior)?;
+    println!("{}", report.summary());
+    println!("wrote {}", out.display());
+    Ok(())
+}
+
 fn main() -> Result<()> {
-    match Cli::parse().command {
+    let cli = Cli::parse();
+    let Some(command) = cli.command else { return reconstruct(cli.reconstruct) };
+    match command {
         Command::Render { scene, data, views, probes, mode, spp, supersample, seed, out } => {
             let modes = match mode {
                 Mode::SplitSum => vec![ShadingMode::SplitSum],

@@ -1,4 +1,5 @@
 //! What the command line runs: each job is a library function with plain options, so the CLI only
 //! parses arguments and prints.
 
+pub mod reconstruct;
 pub mod render;

@@ -2,7 +2,7 @@
 //! geometry/dlmesh.py), so a run can cite where each number comes from.
 
 /// λ of each regulariser; the image loss has weight 1.
-#[derive(Clone, Copy, Debug, PartialEq)]
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct RegularizerWeights {
     /// kd smoothness (`lambda_kd`).
     pub kd_smoothness: f64,

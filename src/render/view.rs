@@ -13,6 +13,7 @@ use crate::light::brdf_lut::BrdfLut;
 use crate::light::prefilter::SplitSumLight;
 use crate::light::sampler::LightSampler;
 use crate::light::CubeMap;
+use crate::material::SurfaceParams;
 use crate::render::effects::Effects;
 use crate::render::gbuffer::GBuffer;
 use crate::render::{montecarlo, splitsum};
@@ -78,15 +79,27 @@ pub fn ray_epsilon(mesh: &Mesh) -> f32 {
 
 /// Shade a traced G-buffer: linear radiance per G-buffer pixel.
 pub fn shade_gbuffer(gbuf: &GBuffer, mesh: &Mesh, bvh: &Bvh, light: &PreparedLight, settings: &RenderSettings, stream_offset: u64) -> Vec<Vec3> {
-    let params = gbuf.material_params(mesh);
+    shade_with_params(gbuf, &gbuf.material_params(mesh), bvh, light, settings, stream_offset, ray_epsilon(mesh))
+}
+
+/// Shade a traced G-buffer whose per-pixel materials are given (e.g. looked up in textures).
+pub fn shade_with_params(
+    gbuf: &GBuffer,
+    params: &[Option<SurfaceParams>],
+    bvh: &Bvh,
+    light: &PreparedLight,
+    settings: &RenderSettings,
+    stream_offset: u64,
+    ray_epsilon: f32,
+) -> Vec<Vec3> {
     match settings.mode {
         ShadingMode::SplitSum => {
             let (ss, lut) = light.split_sum();
-            splitsum::shade(gbuf, &params, ss, lut, settings.effects)
+            splitsum::shade(gbuf, params, ss, lut, settings.effects)
         }
         ShadingMode::MonteCarlo => {
-            let mc = montecarlo::McSettings { spp: settings.spp, seed: settings.seed, effects: settings.effects, ray_epsilon: ray_epsilon(mesh) };
-            montecarlo::shade(gbuf, &params, light.sampler(), bvh, &mc, stream_offset).radiance(&params)
+            let mc = montecarlo::McSettings { spp: settings.spp, seed: settings.seed, effects: settings.effects, ray_epsilon };
+            montecarlo::shade(gbuf, params, light.sampler(), bvh, &mc, stream_offset).radiance(params)
         }
     }
 }
@@ -94,10 +107,23 @@ pub fn shade_gbuffer(gbuf: &GBuffer, mesh: &Mesh, bvh: &Bvh, light: &PreparedLig
 /// Render one view to a linear RGBA image with straight (un-premultiplied) colour and coverage
 /// alpha, the convention of the dataset's `rgba.png` (before its sRGB encoding).
 pub fn render_view(mesh: &Mesh, bvh: &Bvh, light: &PreparedLight, camera: &Camera, settings: &RenderSettings) -> Image {
+    render_view_with(mesh, bvh, light, camera, settings, &|gbuf| gbuf.material_params(mesh))
+}
+
+/// [`render_view`] with the materials of each G-buffer pixel given by `materials` (e.g. learned
+/// textures looked up at the surfels' UVs).
+pub fn render_view_with(
+    mesh: &Mesh,
+    bvh: &Bvh,
+    light: &PreparedLight,
+    camera: &Camera,
+    settings: &RenderSettings,
+    materials: &dyn Fn(&GBuffer) -> Vec<Option<SurfaceParams>>,
+) -> Image {
     let s = settings.supersample.max(1);
     let fine = camera.resized(camera.width * s, camera.height * s);
     let gbuf = GBuffer::trace(mesh, bvh, &fine);
-    let radiance = shade_gbuffer(&gbuf, mesh, bvh, light, settings, 0);
+    let radiance = shade_with_params(&gbuf, &materials(&gbuf), bvh, light, settings, 0, ray_epsilon(mesh));
     let mut premultiplied = Image::new(fine.width, fine.height, 4);
     for (i, (c, surfel)) in radiance.iter().zip(&gbuf.surfels).enumerate() {
         if surfel.is_some() {

@@ -1,0 +1,161 @@
+//! The optimisation loop: batches of views → differentiable render → loss → backward → Adam (per
+//! parameter group, warm-up and decay, clamps), with a progress bar and checkpoints a rerun resumes.
+
+use std::path::Path;
+use std::time::Instant;
+
+use anyhow::{bail, Context, Result};
+use indicatif::{ProgressBar, ProgressStyle};
+
+use crate::optim::adam::{Adam, GroupConfig, LrSchedule};
+use crate::optim::adam::set_var;
+use crate::rng::Sampler;
+
+use super::batch_render::{render_batch, ShadingContext};
+use super::checkpoint::{self, Progress};
+use super::config::FitConfig;
+use super::history::{trailing_mean, IterationRecord};
+use super::objective::objective;
+use super::parameters::Parameters;
+use super::training_view::TrainingView;
+
+/// Lower clamp of the light's radiance (NVDiffRecMC clamps the light at 0 after each step).
+pub const LIGHT_MIN: f64 = 0.0;
+/// Roughness floor of the ks clamp (NVDiffRecMC: 0.08).
+pub const ROUGHNESS_MIN: f64 = 0.08;
+
+pub struct Fit {
+    pub config: FitConfig,
+    pub params: Parameters,
+    pub views: Vec<TrainingView>,
+    pub ctx: ShadingContext,
+    pub history: Vec<IterationRecord>,
+    adam: Adam,
+}
+
+fn optimiser(config: &FitConfig, params: &Parameters) -> Result<Adam> {
+    let mut adam = Adam::new(LrSchedule { warmup_steps: config.warmup_steps, decay_steps: config.decay_steps, staircase: false });
+    adam.add_group(GroupConfig::new("kd", config.lr_material).with_clamp(0.0, 1.0), vec![params.kd.clone()])?;
+    adam.add_group(
+        GroupConfig::new("ks", config.lr_material).with_channel_clamp(&[0.0, ROUGHNESS_MIN, 0.0], &[0.0, 1.0, 1.0]),
+        vec![params.ks.clone()],
+    )?;
+    adam.add_group(GroupConfig::new("light", config.lr_light).with_clamp(LIGHT_MIN, f64::MAX), vec![params.light.clone()])?;
+    Ok(adam)
+}
+
+impl Fit {
+    /// A run from `params` (e.g. `Parameters::initial(&config)`).
+    pub fn new(config: FitConfig, params: Parameters, views: Vec<TrainingView>, ctx: ShadingContext) -> Result<Fit> {
+        if views.is_empty() || views.iter().all(|v| v.is_empty()) {
+            bail!("nothing to optimise: no training view sees the mesh");
+        }
+        if config.batch == 0 {
+            bail!("batch size must be at least 1");
+        }
+        let adam = optimiser(&config, &params)?;
+        Ok(Fit { config, params, views, ctx, history: Vec::new(), adam })
+    }
+
+    /// Iterations done.
+    pub fn iteration(&self) -> usize {
+        self.history.len()
+    }
+
+    /// The views of iteration `it`: consecutive slices of a seeded permutation per epoch, so a
+    /// resumed run sees the same batches as an uninterrupted one.
+    pub fn batch_for(&self, it: usize) -> Vec<usize> {
+        let n = self.views.len();
+        let b = self.config.batch.min(n);
+        (0..b)
+            .map(|k| {
+                let slot = it * b + k;
+                let (epoch, pos) = (slot / n, slot % n);
+                let mut order: Vec<usize> = (0..n).collect();
+                let mut rng = Sampler::new(self.config.seed, 0x5eed_0000 + epoch as u64);
+                for i in (1..n).rev() {
+                    let j = ((rng.next_f32() * (i + 1) as f32) as usize).min(i);
+                    order.swap(i, j);
+                }
+                order[pos]
+            })
+            .collect()
+    }
+
+    /// One gradient step; returns its record.
+    pub fn step(&mut self) -> Result<IterationRecord> {
+        let t = Instant::now();
+        let it = self.iteration();
+        let batch: Vec<&TrainingView> = self.batch_for(it).into_iter().map(|i| &self.views[i]).collect();
+        let render = render_batch(&batch, &self.params, &self.ctx, it as u64)?;
+        let (loss, terms) = objective(&batch, &render, &self.params, &self.config, it)?;
+        if !terms.total.is_finite() {
+            bail!("the loss became non-finite at iteration {it} (terms: {terms:?}); lower the learning rates or check the inputs");
+        }
+        let grads = loss.backward()?;
+        let lr_factor = LrSchedule { warmup_steps: self.config.warmup_steps, decay_steps: self.config.decay_steps, staircase: false }.factor(it);
+        self.adam.step(&grads)?;
+        let record = IterationRecord { iteration: it, terms, lr_factor, seconds: t.elapsed().as_secs_f64() };
+        self.history.push(record.clone());
+        Ok(record)
+    }
+
+    /// Loads the checkpoint in `dir` if there is one made with the same settings; returns whether it did.
+    pub fn resume(&mut self, dir: &Path) -> Result<bool> {
+        let Some(cp) = checkpoint::load(dir)? else { return Ok(false) };
+        if cp.progress.fingerprint != self.config.fingerprint() {
+            bail!(
+                "checkpoint in {} was made with other settings; delete the folder or rerun with the same settings",
+                dir.display()
+            );
+        }
+        set_var(&self.params.kd, &cp.kd).context("checkpoint kd")?;
+        set_var(&self.params.ks, &cp.ks).context("checkpoint ks")?;
+        set_var(&self.params.light, &cp.light).context("checkpoint light")?;
+        self.adam.restore(&cp.adam)?;
+        self.history = cp.progress.history;
+        Ok(true)
+    }
+
+    pub fn save_checkpoint(&self, dir: &Path) -> Result<()> {
+        let state = self.adam.state()?;
+        let progress = Progress {
+            iteration: self.iteration(),
+            fingerprint: self.config.fingerprint(),
+            history: self.history.clone(),
+            adam_step: state.step,
+            adam_slots: state.slots.iter().map(|(k, _, _, s)| (k.clone(), *s)).collect(),
+        };
+        checkpoint::save(dir, self.params.kd.as_tensor(), self.params.ks.as_tensor(), self.params.light.as_tensor(), &state, &progress)
+    }
+
+    /// Runs until `config.iterations`, checkpointing into `checkpoint_dir` every
+    /// `config.checkpoint_every` iterations and at the end.
+    pub fn run(&mut self, checkpoint_dir: Option<&Path>, show_progress: bool) -> Result<()> {
+        let total = self.config.iterations;
+        let bar = if show_progress { ProgressBar::new(total as u64) } else { ProgressBar::hidden() };
+        bar.set_style(
+            ProgressStyle::with_template("{prefix} [{bar:30}] {pos}/{len} {msg} (ETA {eta})")
+                .map_err(|e| anyhow::anyhow!("progress bar template: {e}"))?
+                .progress_chars("=> "),
+        );
+        bar.set_prefix(format!("{:?}", self.ctx.mode));
+        bar.set_position(self.iteration() as u64);
+        while self.iteration() < total {
+            self.step()?;
+            let it = self.iteration();
+            let loss = trailing_mean(&self.history, 20, |r| r.terms.total);
+            let psnr = trailing_mean(&self.history, 20, |r| r.terms.psnr);
+            bar.set_message(format!("loss {loss:.4} PSNR {psnr:.2} dB"));
+            bar.set_position(it as u64);
+            if let Some(dir) = checkpoint_dir {
+                let every = self.config.checkpoint_every;
+                if (every > 0 && it % every == 0) || it == total {
+                    self.save_checkpoint(dir)?;
+                }
+            }
+        }
+        bar.finish();
+        Ok(())
+    }
+}

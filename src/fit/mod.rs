@@ -1,0 +1,15 @@
+//! Optimisation of materials and light on fixed geometry (NVDiffRecMC's second pass): the
+//! parameters, the training views, the differentiable batch render, the loss, the loop with
+//! checkpoints, and the evaluation of the result.
+
+pub mod batch_render;
+pub mod checkpoint;
+pub mod config;
+pub mod evaluate;
+pub mod export;
+pub mod fitter;
+pub mod history;
+pub mod labels;
+pub mod objective;
+pub mod parameters;
+pub mod training_view;

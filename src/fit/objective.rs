@@ -1,0 +1,123 @@
+//! The loss of one step (DESIGN.md §5): the log-sRGB L1 image loss at the covered pixels, the
+//! kd/ks smoothness regularisers (jittered lookups), the monochrome-shading regulariser (Monte Carlo
+//! buffers only) and the prior term on views that have labels.
+
+use anyhow::Result;
+use candle_core::{Tensor, D};
+use serde::{Deserialize, Serialize};
+
+use crate::color::linear_to_srgb;
+use crate::optim::loss::{image_loss, LossTarget};
+use crate::optim::prior_loss::prior_loss;
+use crate::optim::shading::shading_regularizer;
+use crate::optim::smoothness::smoothness_regularizer;
+use crate::optim::srgb::srgb_encode;
+use crate::optim::texture::jitter_uv;
+
+use super::batch_render::BatchRender;
+use super::config::FitConfig;
+use super::parameters::Parameters;
+use super::training_view::TrainingView;
+
+/// Jitter of the smoothness lookups in UV units (NVDiffRecMC: 0.005... of a [0, 1] texture).
+pub const SMOOTHNESS_JITTER: f32 = 0.005;
+
+/// The value of each term of one step (weighted), for logs and curves.
+#[derive(Clone, Copy, Debug, Default, Serialize, Deserialize)]
+pub struct LossTerms {
+    pub image: f64,
+    pub smoothness: f64,
+    pub shading: f64,
+    pub prior: f64,
+    pub total: f64,
+    /// PSNR (dB) of the batch's render against its target, sRGB, pixels with alpha > 0.8.
+    pub psnr: f64,
+}
+
+fn scalar(t: &Tensor) -> Result<f64> {
+    Ok(t.to_dtype(candle_core::DType::F64)?.to_scalar::<f64>()?)
+}
+
+/// Builds the loss of `render` (of `views`, in order) and reports its terms.
+pub fn objective(views: &[&TrainingView], render: &BatchRender, params: &Parameters, config: &FitConfig, iteration: usize) -> Result<(Tensor, LossTerms)> {
+    let targets: Vec<&Tensor> = views.iter().map(|v| &v.target).collect();
+    let target_rgba = Tensor::cat(&targets, 0)?;
+    let target = LossTarget::new(&target_rgba)?;
+    let image = image_loss(&render.rgb, None, &target)?;
+    let mut total = image.clone();
+    let mut terms = LossTerms { image: scalar(&image)?, ..Default::default() };
+
+    let w = &config.regularizers;
+    let alpha = target_rgba.narrow(D::Minus1, 3, 1)?.flatten_all()?;
+    if w.kd_smoothness > 0.0 || w.ks_smoothness > 0.0 {
+        let uv: Vec<[f32; 2]> = views.iter().flat_map(|v| v.uv.iter().copied()).collect();
+        let jittered = jitter_uv(&uv, SMOOTHNESS_JITTER, config.seed ^ (iteration as u64).wrapping_mul(0x9e37_79b9));
+        let uv = uv.into();
+        let mut smooth = smoothness_regularizer(params.kd.as_tensor(), &uv, &jittered, &alpha)?.affine(w.kd_smoothness, 0.0)?;
+        smooth = (smooth + smoothness_regularizer(params.ks.as_tensor(), &uv, &jittered, &alpha)?.affine(w.ks_smoothness, 0.0)?)?;
+        terms.smoothness = scalar(&smooth)?;
+        total = (total + smooth)?;
+    }
+    if let Some((diffuse, specular)) = &render.light_buffers {
+        if w.shading_diffuse > 0.0 || w.shading_specular > 0.0 {
+            let s = shading_regularizer(diffuse, specular, &target_rgba, w.shading_diffuse, w.shading_specular)?;
+            terms.shading = scalar(&s)?;
+            total = (total + s)?;
+        }
+    }
+    let schedule = config.prior.schedule(iteration, config.iterations);
+    let labelled: Vec<usize> = (0..views.len()).filter(|&k| views[k].labels.is_some()).collect();
+    if schedule > 0.0 && !labelled.is_empty() {
+        let mut prior: Option<Tensor> = None;
+        for &k in &labelled {
+            let labels = views[k].labels.as_ref().expect("filtered");
+            let (start, len) = (render.offsets[k], views[k].len());
+            let kd = render.kd.narrow(0, start, len)?.reshape((len, 1, 3))?;
+            let ks = render.ks.narrow(0, start, len)?.reshape((len, 1, 3))?;
+            let mut parts = Vec::new();
+            let p = &config.prior;
+            if p.albedo > 0.0 {
+                parts.push(prior_loss(&srgb_encode(&kd.clamp(0.0, 1.0)?)?, &labels.albedo_srgb, &labels.mask, p.albedo * schedule)?);
+            }
+            if p.roughness > 0.0 {
+                parts.push(prior_loss(&ks.narrow(D::Minus1, 1, 1)?, &labels.roughness, &labels.mask, p.roughness * schedule)?);
+            }
+            if p.metallic > 0.0 {
+                parts.push(prior_loss(&ks.narrow(D::Minus1, 2, 1)?, &labels.metallic, &labels.mask, p.metallic * schedule)?);
+            }
+            for t in parts {
+                let t = t.affine(1.0 / labelled.len() as f64, 0.0)?;
+                prior = Some(match prior {
+                    Some(acc) => (acc + t)?,
+                    None => t,
+                });
+            }
+        }
+        if let Some(prior) = prior {
+            terms.prior = scalar(&prior)?;
+            total = (total + prior)?;
+        }
+    }
+    terms.total = scalar(&total)?;
+    terms.psnr = batch_psnr(&render.rgb, &target_rgba)?;
+    Ok((total, terms))
+}
+
+/// PSNR of linear `rgb` [N, 1, 3] against linear RGBA `target` [N, 1, 4], both sRGB-encoded and
+/// clamped to [0, 1], over pixels with target alpha > 0.8 (the relighting protocol's mask).
+pub fn batch_psnr(rgb: &Tensor, target: &Tensor) -> Result<f64> {
+    let r = rgb.detach().flatten_all()?.to_dtype(candle_core::DType::F32)?.to_vec1::<f32>()?;
+    let t = target.flatten_all()?.to_dtype(candle_core::DType::F32)?.to_vec1::<f32>()?;
+    let (mut sum, mut count) = (0.0f64, 0usize);
+    for (p, q) in r.chunks_exact(3).zip(t.chunks_exact(4)) {
+        if q[3] <= 0.8 {
+            continue;
+        }
+        for c in 0..3 {
+            let d = linear_to_srgb(p[c].clamp(0.0, 1.0)) as f64 - linear_to_srgb(q[c].clamp(0.0, 1.0)) as f64;
+            sum += d * d;
+        }
+        count += 3;
+    }
+    Ok(if count == 0 { f64::NAN } else { -10.0 * (sum / count as f64).log10() })
+}

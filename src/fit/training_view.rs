@@ -1,0 +1,105 @@
+//! One training view prepared once (geometry is fixed): the G-buffer's covered pixels with their
+//! surface points and atlas UVs, and the target colour and alpha at those pixels. Everything the
+//! loop renders and compares is a list of covered pixels, not a full image: pixels the primary ray
+//! misses contribute a constant to the loss and cost nothing.
+
+use std::sync::Arc;
+
+use anyhow::{Context, Result};
+use candle_core::{Device, Tensor};
+use glam::Vec3;
+
+use crate::geometry::bvh::Bvh;
+use crate::geometry::Mesh;
+use crate::image::Image;
+use crate::render::gbuffer::{GBuffer, Surfel};
+use crate::scene::dataset::View;
+use crate::scene::Camera;
+
+use super::labels::PixelLabels;
+
+#[derive(Clone)]
+pub struct TrainingView {
+    pub name: String,
+    pub camera: Camera,
+    /// Index of the view in the dataset's training list (also separates random streams).
+    pub index: usize,
+    /// Image index (y·W + x) of each covered pixel.
+    pub pixels: Vec<u32>,
+    pub surfels: Vec<Surfel>,
+    /// Atlas UV of each covered pixel.
+    pub uv: Arc<[[f32; 2]]>,
+    /// Camera position (outgoing directions).
+    pub origin: Vec3,
+    /// Target linear RGB and alpha at the covered pixels, [n, 1, 4] (a column "image" so the
+    /// image loss applies unchanged).
+    pub target: Tensor,
+    /// Prior labels at the covered pixels, when this view has them.
+    pub labels: Option<PixelLabels>,
+}
+
+impl TrainingView {
+    /// Trace `view`'s camera against the atlas mesh and gather its target at the covered pixels.
+    pub fn new(view: &View, index: usize, mesh: &Mesh, bvh: &Bvh) -> Result<TrainingView> {
+        let rgba = view.load_rgba().with_context(|| format!("training view {}", view.name))?;
+        Self::from_image(&view.name, &view.camera, index, &rgba, mesh, bvh)
+    }
+
+    /// As [`TrainingView::new`] with the target given (linear RGBA at the camera's size).
+    pub fn from_image(name: &str, camera: &Camera, index: usize, rgba: &Image, mesh: &Mesh, bvh: &Bvh) -> Result<TrainingView> {
+        anyhow::ensure!(
+            rgba.width == camera.width && rgba.height == camera.height && rgba.channels == 4,
+            "training view {name}: image is {}×{}×{}, the camera expects {}×{}×4",
+            rgba.width,
+            rgba.height,
+            rgba.channels,
+            camera.width,
+            camera.height
+        );
+        let gbuf = GBuffer::trace(mesh, bvh, camera);
+        let (mut pixels, mut surfels, mut uv, mut target) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+        for (i, s) in gbuf.surfels.iter().enumerate() {
+            if let Some(s) = s {
+                pixels.push(i as u32);
+                surfels.push(*s);
+                uv.push([s.uv.x, s.uv.y]);
+                target.extend_from_slice(&rgba.data[4 * i..4 * i + 4]);
+            }
+        }
+        let n = pixels.len();
+        Ok(TrainingView {
+            name: name.to_string(),
+            camera: camera.clone(),
+            index,
+            pixels,
+            surfels,
+            uv: uv.into(),
+            origin: gbuf.origin,
+            target: Tensor::from_vec(target, (n, 1, 4), &Device::Cpu)?,
+            labels: None,
+        })
+    }
+
+    pub fn len(&self) -> usize {
+        self.pixels.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.pixels.is_empty()
+    }
+
+    /// (normal, direction to the camera) per covered pixel, as split-sum shading wants it.
+    pub fn normal_and_view(&self) -> Vec<Option<(Vec3, Vec3)>> {
+        self.surfels.iter().map(|s| Some((s.normal, (self.origin - s.position).normalize()))).collect()
+    }
+
+    /// Scatter per-covered-pixel values (n × c) into a full image (zero elsewhere).
+    pub fn to_image(&self, values: &[f32], channels: usize) -> Image {
+        let mut img = Image::new(self.camera.width, self.camera.height, channels);
+        for (k, &p) in self.pixels.iter().enumerate() {
+            let p = p as usize;
+            img.data[channels * p..channels * (p + 1)].copy_from_slice(&values[channels * k..channels * (k + 1)]);
+        }
+        img
+    }
+}

@@ -1,0 +1,249 @@
+//! The reconstruct job: a scene's training views → materials and light optimised on fixed geometry
+//! (the ground-truth mesh) → evaluation (NeRFactor protocol) → a run folder with the model, the
+//! light, validation renders and a report.
+//!
+//! Run folder: `model/` (OBJ + MTL, glTF, kd/ks PNG), `light/` (lat-long EXR, cube faces),
+//! `renders/` (validation views under the learned light), `checkpoint/` (resume state),
+//! `report.json`, `report.md`, `plots/`.
+
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::time::Instant;
+
+use anyhow::{bail, Context, Result};
+use serde::Serialize;
+
+use crate::fit::batch_render::ShadingContext;
+use crate::fit::config::FitConfig;
+use crate::fit::evaluate::{evaluate, EvalSettings, Evaluation};
+use crate::fit::export::{write_light, write_model, write_render};
+use crate::fit::fitter::Fit;
+use crate::fit::history::IterationRecord;
+use crate::fit::parameters::Parameters;
+use crate::fit::training_view::TrainingView;
+use crate::geometry::atlas::{self, Atlas, AtlasSource};
+use crate::geometry::bvh::Bvh;
+use crate::jobs::render::ground_truth_mesh;
+use crate::light::brdf_lut::BrdfLut;
+use crate::light::prefilter::PrefilterOptions;
+use crate::render::effects::{self, EffectChoice};
+use crate::render::gbuffer::GBuffer;
+use crate::render::splitsum_op::LightMaps;
+use crate::render::view::{ray_epsilon, ShadingMode};
+use crate::scene::dataset::Dataset;
+use crate::scene::SceneSpec;
+
+/// Where the geometry comes from.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum GeometrySource {
+    /// The scene's ground-truth mesh (NVDiffRecMC's second pass on known geometry).
+    GroundTruth,
+}
+
+#[derive(Clone, Debug)]
+pub struct ReconstructOptions {
+    pub scene: String,
+    pub data: Option<PathBuf>,
+    pub geometry: GeometrySource,
+    pub fit: FitConfig,
+    /// Monte Carlo samples of the evaluation renders.
+    pub eval_spp: u32,
+    pub out: PathBuf,
+    pub progress: bool,
+}
+
+/// Everything a run needs that does not depend on the fit settings (reused across ablation runs).
+pub struct Prepared {
+    pub spec: SceneSpec,
+    pub dataset: Dataset,
+    pub atlas: Atlas,
+    pub bvh: Arc<Bvh>,
+    pub effects: EffectChoice,
+    pub views: Vec<TrainingView>,
+    pub stage_seconds: Vec<(String, f64)>,
+}
+
+/// Load the scene, build the atlas and BVH, choose the effects, trace the training views.
+pub fn prepare(scene: &str, data: Option<&PathBuf>, geometry: GeometrySource, texture_res: usize) -> Result<Prepared> {
+    let mut stages = Vec::new();
+    let t = Instant::now();
+    let mut spec = SceneSpec::find(scene)?;
+    if let Some(dir) = data {
+        spec = spec.with_data_dir(dir);
+    }
+    let dataset = spec.load_dataset()?;
+    stages.push(("load scene".to_string(), t.elapsed().as_secs_f64()));
+
+    let t = Instant::now();
+    let mesh = match geometry {
+        GeometrySource::GroundTruth => ground_truth_mesh(&spec)?,
+    };
+    let atlas = atlas::build(&mesh, texture_res).with_context(|| format!("building the UV atlas of scene {:?}", spec.name))?;
+    let bvh = Arc::new(Bvh::build(&atlas.mesh));
+    stages.push(("mesh, atlas, BVH".to_string(), t.elapsed().as_secs_f64()));
+
+    let t = Instant::now();
+    // Materials are what we solve for, so `auto` may not look at the ground-truth ones.
+    let probes: Vec<GBuffer> = dataset
+        .train
+        .iter()
+        .step_by((dataset.train.len() / 4).max(1))
+        .take(4)
+        .map(|v| GBuffer::trace(&atlas.mesh, &bvh, &v.camera.resized(64, 64)))
+        .collect();
+    let effects = effects::choose(spec.effects, &atlas.mesh, &bvh, &probes, false);
+    stages.push(("choose effects".to_string(), t.elapsed().as_secs_f64()));
+
+    let t = Instant::now();
+    let views: Vec<TrainingView> =
+        dataset.train.iter().enumerate().map(|(i, v)| TrainingView::new(v, i, &atlas.mesh, &bvh)).collect::<Result<_>>()?;
+    if views.iter().all(|v| v.is_empty()) {
+        bail!("no training view of scene {:?} sees the mesh: check the cameras and the geometry", spec.name);
+    }
+    stages.push(("trace training views".to_string(), t.elapsed().as_secs_f64()));
+    Ok(Prepared { spec, dataset, atlas, bvh, effects, views, stage_seconds: stages })
+}
+
+/// The shading context of a run on `prepared` with `config`.
+pub fn shading_context(prepared: &Prepared, config: &FitConfig) -> ShadingContext {
+    ShadingContext {
+        mode: config.mode,
+        effects: prepared.effects.effects,
+        spp: config.spp,
+        denoise: config.denoise,
+        seed: config.seed,
+        ray_epsilon: ray_epsilon(&prepared.atlas.mesh),
+        bvh: prepared.bvh.clone(),
+        light_maps: Arc::new(LightMaps::matrix_free(config.light_res, PrefilterOptions::default())),
+        lut: Arc::new(BrdfLut::compute(32, 512)),
+    }
+}
+
+#[derive(Serialize)]
+pub struct ReconstructReport {
+    pub scene: String,
+    pub data_dir: PathBuf,
+    pub geometry: GeometrySource,
+    pub atlas: String,
+    pub effects: EffectChoice,
+    pub prior: String,
+    pub config: FitConfig,
+    pub evaluation: Evaluation,
+    pub stage_seconds: Vec<(String, f64)>,
+    pub history: Vec<IterationRecord>,
+}
+
+fn atlas_description(a: &Atlas) -> String {
+    match &a.source {
+        AtlasSource::OwnUvs => format!("the mesh's own UVs ({}², {:.0}% used)", a.resolution, 100.0 * a.stats.utilisation),
+        AtlasSource::Generated { reason, charts } => {
+            format!("generated: {charts} charts, {:.0}% of {}² used ({reason})", 100.0 * a.stats.utilisation, a.resolution)
+        }
+    }
+}
+
+/// Fit on prepared data, evaluate, and write the run folder.
+pub fn run_prepared(prepared: &Prepared, views: Vec<TrainingView>, opts: &ReconstructOptions, prior: &str) -> Result<ReconstructReport> {
+    let mut stages = prepared.stage_seconds.clone();
+    std::fs::create_dir_all(&opts.out).with_context(|| format!("cannot create the run folder {}", opts.out.display()))?;
+    let ctx = shading_context(prepared, &opts.fit);
+    let mut fit = Fit::new(opts.fit.clone(), Parameters::initial(&opts.fit)?, views, ctx)?;
+    let checkpoint_dir = opts.out.join("checkpoint");
+    if fit.resume(&checkpoint_dir)? && opts.progress {
+        eprintln!("resuming from {} at iteration {}", checkpoint_dir.display(), fit.iteration());
+    }
+    let t = Instant::now();
+    fit.run(Some(&checkpoint_dir), opts.progress)?;
+    stages.push(("optimise".to_string(), t.elapsed().as_secs_f64()));
+
+    let t = Instant::now();
+    let textures = fit.params.textures()?;
+    let light = fit.params.light_cube()?;
+    write_model(&opts.out.join("model"), &prepared.atlas.mesh, &textures)?;
+    write_light(&opts.out.join("light"), &light)?;
+    stages.push(("export".to_string(), t.elapsed().as_secs_f64()));
+
+    let t = Instant::now();
+    let test_probes = prepared.spec.load_test_probes().unwrap_or_else(|e| {
+        eprintln!("relighting skipped: {e:#}");
+        Vec::new()
+    });
+    let settings = EvalSettings {
+        relight_mode: ShadingMode::MonteCarlo,
+        spp: opts.eval_spp,
+        supersample: 2,
+        seed: opts.fit.seed,
+        effects: prepared.effects.effects,
+        train_mode: opts.fit.mode,
+        train_view_stride: 10,
+        max_test_views: None,
+    };
+    let evaluated = evaluate(&prepared.dataset, &prepared.atlas.mesh, &prepared.bvh, &textures, &light, &test_probes, &settings)?;
+    for (name, img) in &evaluated.val_renders {
+        write_render(&opts.out.join("renders"), name, img)?;
+    }
+    stages.push(("evaluate".to_string(), t.elapsed().as_secs_f64()));
+
+    let report = ReconstructReport {
+        scene: prepared.spec.name.clone(),
+        data_dir: prepared.spec.data_dir.clone(),
+        geometry: opts.geometry,
+        atlas: atlas_description(&prepared.atlas),
+        effects: prepared.effects.clone(),
+        prior: prior.to_string(),
+        config: opts.fit.clone(),
+        evaluation: evaluated.metrics,
+        stage_seconds: stages,
+        history: fit.history.clone(),
+    };
+    let path = opts.out.join("report.json");
+    std::fs::write(&path, serde_json::to_string_pretty(&report)?).with_context(|| format!("cannot write {}", path.display()))?;
+    Ok(report)
+}
+
+/// Prepare the scene and run (the `reconstruct` command).
+pub fn run(opts: &ReconstructOptions, prior: &str) -> Result<ReconstructReport> {
+    if prior != "none" {
+        bail!("--prior {prior}: label sources other than `none` are not wired yet");
+    }
+    let prepared = prepare(&opts.scene, opts.data.as_ref(), opts.geometry, opts.fit.texture_res)?;
+    if opts.progress {
+        eprintln!("scene {}: {} training views; atlas: {}", prepared.spec.name, prepared.views.len(), atlas_description(&prepared.atlas));
+        eprintln!("effects: {}", prepared.effects);
+    }
+    let views = prepared.views.clone();
+    run_prepared(&prepared, views, opts, prior)
+}
+
+impl ReconstructReport {
+    /// A few lines for the terminal.
+    pub fn summary(&self) -> String {
+        let f = |v: Option<f64>| v.map_or("-".to_string(), |v| format!("{v:.2}"));
+        let e = &self.evaluation;
+        let mut s = format!(
+            "scene {} | prior {} | {:?}\n\
+             re-rendered training views: {} dB, validation views: {} dB\n\
+             albedo PSNR raw / scaled: {} / {} dB\n\
+             relighting PSNR raw / scaled: {} / {} dB ({} renders)\n\
+             roughness MSE {}, metallic MSE {}, normal error {}°",
+            self.scene,
+            self.prior,
+            self.config.mode,
+            f(e.train_psnr),
+            f(e.val_psnr),
+            f(e.albedo_psnr_raw),
+            f(e.albedo_psnr_scaled),
+            f(e.relight_psnr_raw),
+            f(e.relight_psnr_scaled),
+            e.relight.len(),
+            e.roughness_mse.map_or("-".into(), |v| format!("{v:.4}")),
+            e.metallic_mse.map_or("-".into(), |v| format!("{v:.4}")),
+            f(e.normal_error_deg),
+        );
+        for (stage, secs) in &self.stage_seconds {
+            s.push_str(&format!("\n{stage}: {secs:.1} s"));
+        }
+        s
+    }
+}

@@ -1,0 +1,216 @@
+//! End-to-end checks of the optimisation loop on a small scene made here (known textures and
+//! light, targets rendered by the project's own split-sum renderer with the same pixel-centre rays
+//! the loop traces, so a perfect fit is reachable):
+//! - from a flat start, the loop recovers the albedo texture on the texels the cameras see and
+//!   the training images;
+//! - a checkpoint taken mid-run and resumed gives exactly the uninterrupted run's parameters;
+//! - a 500-iteration run under a light with a 1e4-radiance sun keeps every loss finite.
+
+use std::sync::Arc;
+
+use anyhow::Result;
+use glam::{Quat, Vec3};
+use reconstruct::fit::batch_render::ShadingContext;
+use reconstruct::fit::config::FitConfig;
+use reconstruct::fit::evaluate::texture_materials;
+use reconstruct::fit::fitter::Fit;
+use reconstruct::fit::parameters::Parameters;
+use reconstruct::fit::training_view::TrainingView;
+use reconstruct::geometry::atlas::{self, Atlas};
+use reconstruct::geometry::bvh::Bvh;
+use reconstruct::geometry::primitives::MeshBuilder;
+use reconstruct::image::Image;
+use reconstruct::light::brdf_lut::BrdfLut;
+use reconstruct::light::prefilter::PrefilterOptions;
+use reconstruct::light::CubeMap;
+use reconstruct::material::texture_maps::MaterialTextures;
+use reconstruct::material::{BaseColor, PartMaterial};
+use reconstruct::optim::texture::bilinear_taps;
+use reconstruct::render::effects::Effects;
+use reconstruct::render::splitsum_op::LightMaps;
+use reconstruct::render::view::{ray_epsilon, render_view_with, PreparedLight, RenderSettings, ShadingMode};
+use reconstruct::scene::Camera;
+
+const TEX: usize = 32;
+const LIGHT: usize = 16;
+const PIXELS: usize = 40;
+
+/// A stripy, two-tone albedo in linear RGB.
+fn pattern(size: usize) -> Image {
+    let mut img = Image::new(size, size, 3);
+    for y in 0..size {
+        for x in 0..size {
+            let (u, v) = ((x as f32 + 0.5) / size as f32, (y as f32 + 0.5) / size as f32);
+            let t = 0.5 + 0.5 * (6.0 * u + 3.0 * (5.0 * v).sin()).sin();
+            img.set_rgb(y * size + x, Vec3::new(0.7, 0.35, 0.1).lerp(Vec3::new(0.15, 0.3, 0.6), t));
+        }
+    }
+    img
+}
+
+struct Scene {
+    atlas: Atlas,
+    bvh: Arc<Bvh>,
+    truth: MaterialTextures,
+    light: CubeMap,
+    views: Vec<TrainingView>,
+}
+
+fn sky(sun: f32) -> CubeMap {
+    let sun_dir = Vec3::new(0.5, 0.3, 0.8).normalize();
+    CubeMap::from_fn(LIGHT, |d| {
+        let base = if d.z > 0.0 { Vec3::new(0.6, 0.7, 0.9) } else { Vec3::new(0.25, 0.22, 0.2) };
+        base + if d.dot(sun_dir) > 0.995 { Vec3::splat(sun) } else { Vec3::ZERO }
+    })
+}
+
+fn scene(sun: f32) -> Result<Scene> {
+    let mut b = MeshBuilder::new();
+    let part = b.part(PartMaterial { name: "body".into(), base_color: BaseColor::Texture(Arc::new(pattern(64))), roughness: 0.5, metallic: 0.0 });
+    b.ellipsoid(part, Vec3::ZERO, Vec3::new(0.8, 0.6, 0.5), Quat::IDENTITY, 32, 16);
+    let mesh = b.build();
+    let atlas = atlas::build(&mesh, TEX)?;
+    let truth = MaterialTextures::bake_from(&mesh, &atlas, TEX)?;
+    let bvh = Arc::new(Bvh::build(&atlas.mesh));
+    let light = sky(sun);
+    let prepared = PreparedLight::new(light.clone());
+    let settings = RenderSettings { mode: ShadingMode::SplitSum, spp: 1, supersample: 1, seed: 0, effects: Effects { shadows: false, specular: true } };
+    let mut views = Vec::new();
+    for i in 0..12 {
+        let az = i as f32 * std::f32::consts::TAU / 12.0;
+        let el: f32 = if i % 2 == 0 { 0.5 } else { -0.2 };
+        let eye = 3.0 * Vec3::new(el.cos() * az.cos(), el.cos() * az.sin(), el.sin());
+        let camera = Camera::look_at(eye, Vec3::ZERO, Vec3::Z, 0.7, PIXELS, PIXELS);
+        let target = render_view_with(&atlas.mesh, &bvh, &prepared, &camera, &settings, &texture_materials(&truth));
+        views.push(TrainingView::from_image(&format!("train_{i:03}"), &camera, i, &target, &atlas.mesh, &bvh)?);
+    }
+    Ok(Scene { atlas, bvh, truth, light, views })
+}
+
+fn context(s: &Scene, config: &FitConfig) -> ShadingContext {
+    ShadingContext {
+        mode: config.mode,
+        effects: Effects { shadows: false, specular: true },
+        spp: config.spp,
+        denoise: false,
+        seed: config.seed,
+        ray_epsilon: ray_epsilon(&s.atlas.mesh),
+        bvh: s.bvh.clone(),
+        light_maps: Arc::new(LightMaps::matrix_free(config.light_res, PrefilterOptions::default())),
+        lut: Arc::new(BrdfLut::compute(32, 256)),
+    }
+}
+
+fn config(iterations: usize) -> FitConfig {
+    FitConfig { iterations, batch: 3, texture_res: TEX, light_res: LIGHT, lr_material: 0.03, warmup_steps: 10, checkpoint_every: 0, ..FitConfig::default() }
+}
+
+/// Texels some training pixel's bilinear lookup touches with weight > 5 %.
+fn covered_texels(views: &[TrainingView]) -> Vec<bool> {
+    let mut covered = vec![false; TEX * TEX];
+    for v in views {
+        for uv in v.uv.iter() {
+            for (k, w) in bilinear_taps(*uv, TEX, TEX) {
+                if w > 0.05 {
+                    covered[k] = true;
+                }
+            }
+        }
+    }
+    covered
+}
+
+fn texel_psnr(a: &Image, b: &Image, mask: &[bool]) -> f64 {
+    let (mut sum, mut n) = (0.0f64, 0usize);
+    for (i, &m) in mask.iter().enumerate() {
+        if m {
+            for c in 0..3 {
+                let d = (a.data[3 * i + c] - b.data[3 * i + c]) as f64;
+                sum += d * d;
+                n += 1;
+            }
+        }
+    }
+    -10.0 * (sum / n as f64).log10()
+}
+
+fn mean_view_psnr(fit: &Fit) -> Result<f64> {
+    use reconstruct::fit::batch_render::render_batch;
+    use reconstruct::fit::objective::batch_psnr;
+    let mut total = 0.0;
+    for v in &fit.views {
+        let r = render_batch(&[v], &fit.params, &fit.ctx, 0)?;
+        total += batch_psnr(&r.rgb, &v.target)?;
+    }
+    Ok(total / fit.views.len() as f64)
+}
+
+#[test]
+fn flat_start_recovers_the_albedo_texture_and_the_images() -> Result<()> {
+    let s = scene(0.0)?;
+    // The light is known here (learning rate 0): with it free, albedo is only defined up to a
+    // per-channel scale, which the hotdog evaluation handles with the protocol's scaled PSNR.
+    let cfg = FitConfig { lr_light: 0.0, ..config(400) };
+    let flat = MaterialTextures::constant(TEX, Vec3::splat(cfg.init_kd), cfg.init_roughness, cfg.init_metallic);
+    let params = Parameters::from_values(&flat, &s.light)?;
+    let ctx = context(&s, &cfg);
+    let mut fit = Fit::new(cfg, params, s.views.clone(), ctx)?;
+    let covered = covered_texels(&fit.views);
+    let before = texel_psnr(&fit.params.textures()?.kd, &s.truth.kd, &covered);
+    let images_before = mean_view_psnr(&fit)?;
+    fit.run(None, false)?;
+    let after = texel_psnr(&fit.params.textures()?.kd, &s.truth.kd, &covered);
+    let images_after = mean_view_psnr(&fit)?;
+    eprintln!("albedo PSNR on covered texels: {before:.2} → {after:.2} dB; images {images_before:.2} → {images_after:.2} dB");
+    // Measured: 13.7 → 30.5 dB albedo, 18.8 → 45.4 dB images. The albedo stays below the images
+    // because texels at the edge of the covered set are seen by few pixels at grazing angles and
+    // the smoothness regulariser pulls them toward their neighbours. Bounds sit 1.5 dB under the
+    // measurement, far above the flat start.
+    assert!(before < 15.0 && images_before < 22.0, "flat start already close? {before} / {images_before}");
+    assert!(after > 29.0, "albedo PSNR on covered texels {after:.2} dB");
+    assert!(images_after > 43.0, "re-rendered training images {images_after:.2} dB");
+    Ok(())
+}
+
+#[test]
+fn resumed_run_matches_the_uninterrupted_one() -> Result<()> {
+    let s = scene(0.0)?;
+    let cfg = config(8);
+    let straight = {
+        let mut fit = Fit::new(cfg.clone(), Parameters::initial(&cfg)?, s.views.clone(), context(&s, &cfg))?;
+        fit.run(None, false)?;
+        (fit.params.textures()?, fit.params.light_cube()?.data)
+    };
+    let dir = std::env::temp_dir().join(format!("reconstruct-resume-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    {
+        let half = FitConfig { iterations: 4, ..cfg.clone() };
+        let mut fit = Fit::new(half, Parameters::initial(&cfg)?, s.views.clone(), context(&s, &cfg))?;
+        fit.run(Some(&dir), false)?;
+    }
+    let mut fit = Fit::new(cfg.clone(), Parameters::initial(&cfg)?, s.views.clone(), context(&s, &cfg))?;
+    assert!(fit.resume(&dir)?, "checkpoint not found");
+    assert_eq!(fit.iteration(), 4);
+    fit.run(Some(&dir), false)?;
+    assert_eq!(fit.params.textures()?, straight.0);
+    assert_eq!(fit.params.light_cube()?.data, straight.1);
+    // Other settings must not silently reuse the checkpoint.
+    let other = FitConfig { lr_material: 0.5, ..cfg.clone() };
+    let mut wrong = Fit::new(other.clone(), Parameters::initial(&other)?, s.views.clone(), context(&s, &other))?;
+    let err = wrong.resume(&dir).expect_err("settings differ");
+    assert!(err.to_string().contains("other settings"), "{err}");
+    std::fs::remove_dir_all(&dir)?;
+    Ok(())
+}
+
+#[test]
+fn losses_stay_finite_under_a_sun() -> Result<()> {
+    let s = scene(1e4)?;
+    let cfg = config(500);
+    let mut fit = Fit::new(cfg.clone(), Parameters::initial(&cfg)?, s.views.clone(), context(&s, &cfg))?;
+    fit.run(None, false)?;
+    assert_eq!(fit.history.len(), 500);
+    assert!(fit.history.iter().all(|r| r.terms.total.is_finite()), "a loss went non-finite");
+    assert!(fit.params.all_finite()?);
+    Ok(())
+}
