@@ -72,6 +72,15 @@ struct ReconstructArgs {
     light_res: Option<usize>,
     #[arg(long)]
     seed: Option<u64>,
+    /// Adam learning rate of the kd/ks textures.
+    #[arg(long)]
+    lr_material: Option<f64>,
+    /// Adam learning rate of the light.
+    #[arg(long)]
+    lr_light: Option<f64>,
+    /// Weight of the light white-balance regulariser (NVDiffRec: 0.005).
+    #[arg(long)]
+    light_balance: Option<f64>,
     /// Monte Carlo samples per pixel of the evaluation renders.
     #[arg(long, default_value_t = 16)]
     eval_spp: u32,
@@ -130,6 +139,9 @@ fn reconstruct(a: ReconstructArgs) -> Result<()> {
     if let Some(v) = a.texture_res { fit.texture_res = v; }
     if let Some(v) = a.light_res { fit.light_res = v; }
     if let Some(v) = a.seed { fit.seed = v; }
+    if let Some(v) = a.lr_material { fit.lr_material = v; }
+    if let Some(v) = a.lr_light { fit.lr_light = v; }
+    if let Some(v) = a.light_balance { fit.regularizers.light_white_balance = v; }
     let mode_tag = match fit.mode { ShadingMode::SplitSum => "splitsum", ShadingMode::MonteCarlo => "mc" };
     let out = a.out.unwrap_or_else(|| PathBuf::from(format!("runs/{}-{}-{mode_tag}", a.scene, a.prior.replace([':', '/'], "_"))));
     let geometry = match a.geometry { Geometry::Gt => GeometrySource::GroundTruth };

@@ -12,4 +12,5 @@ pub mod history;
 pub mod labels;
 pub mod objective;
 pub mod parameters;
+pub mod pixel_scatter;
 pub mod training_view;

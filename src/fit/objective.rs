@@ -7,6 +7,7 @@ use candle_core::{Tensor, D};
 use serde::{Deserialize, Serialize};
 
 use crate::color::linear_to_srgb;
+use crate::optim::light_balance::light_white_balance;
 use crate::optim::loss::{image_loss, LossTarget};
 use crate::optim::prior_loss::prior_loss;
 use crate::optim::shading::shading_regularizer;
@@ -28,6 +29,9 @@ pub struct LossTerms {
     pub image: f64,
     pub smoothness: f64,
     pub shading: f64,
+    /// Light white balance.
+    #[serde(default)]
+    pub light: f64,
     pub prior: f64,
     pub total: f64,
     /// PSNR (dB) of the batch's render against its target, sRGB, pixels with alpha > 0.8.
@@ -57,6 +61,11 @@ pub fn objective(views: &[&TrainingView], render: &BatchRender, params: &Paramet
         smooth = (smooth + smoothness_regularizer(params.ks.as_tensor(), &uv, &jittered, &alpha)?.affine(w.ks_smoothness, 0.0)?)?;
         terms.smoothness = scalar(&smooth)?;
         total = (total + smooth)?;
+    }
+    if w.light_white_balance > 0.0 {
+        let l = light_white_balance(params.light.as_tensor())?.affine(w.light_white_balance, 0.0)?;
+        terms.light = scalar(&l)?;
+        total = (total + l)?;
     }
     if let Some((diffuse, specular)) = &render.light_buffers {
         if w.shading_diffuse > 0.0 || w.shading_specular > 0.0 {

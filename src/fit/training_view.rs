@@ -12,6 +12,7 @@ use glam::Vec3;
 use crate::geometry::bvh::Bvh;
 use crate::geometry::Mesh;
 use crate::image::Image;
+use crate::render::denoise::DenoiseGuides;
 use crate::render::gbuffer::{GBuffer, Surfel};
 use crate::scene::dataset::View;
 use crate::scene::Camera;
@@ -91,6 +92,18 @@ impl TrainingView {
     /// (normal, direction to the camera) per covered pixel, as split-sum shading wants it.
     pub fn normal_and_view(&self) -> Vec<Option<(Vec3, Vec3)>> {
         self.surfels.iter().map(|s| Some((s.normal, (self.origin - s.position).normalize()))).collect()
+    }
+
+    /// Normals, depths and coverage of the full view, for the cross-bilateral denoiser.
+    pub fn denoise_guides(&self) -> Result<DenoiseGuides> {
+        let n = self.camera.width * self.camera.height;
+        let (mut normal, mut depth, mut covered) = (vec![Vec3::ZERO; n], vec![0.0f32; n], vec![false; n]);
+        for (s, &p) in self.surfels.iter().zip(&self.pixels) {
+            normal[p as usize] = s.normal;
+            depth[p as usize] = s.depth;
+            covered[p as usize] = true;
+        }
+        DenoiseGuides::new(self.camera.width, self.camera.height, normal, depth, covered)
     }
 
     /// Scatter per-covered-pixel values (n × c) into a full image (zero elsewhere).

@@ -6,6 +6,7 @@
 pub mod adam;
 pub mod gradcheck;
 pub mod laplacian;
+pub mod light_balance;
 pub mod loss;
 pub mod mip;
 pub mod prior_loss;

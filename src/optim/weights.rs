@@ -15,6 +15,8 @@ pub struct RegularizerWeights {
     /// Laplacian on vertex offsets (`laplace_scale`, "relative" mode), ramped down linearly to 0
     /// over the run.
     pub laplacian: f64,
+    /// Light white balance (NVDiffRec's `lgt.regularizer() * 0.005`).
+    pub light_white_balance: f64,
 }
 
 impl Default for RegularizerWeights {
@@ -25,6 +27,7 @@ impl Default for RegularizerWeights {
             shading_diffuse: 0.15,
             shading_specular: 0.0025,
             laplacian: 3000.0,
+            light_white_balance: 0.005,
         }
     }
 }

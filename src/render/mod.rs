@@ -4,6 +4,7 @@ pub mod denoise;
 pub mod effects;
 pub mod gbuffer;
 pub mod montecarlo;
+pub mod montecarlo_op;
 pub mod splitsum;
 pub mod splitsum_op;
 pub mod view;

@@ -67,14 +67,40 @@ fn specular_probability(p: &SurfaceParams, nov: f32, effects: Effects) -> f32 {
     (spec / (spec + diff)).clamp(0.1, 0.9)
 }
 
-/// Diffuse (demodulated) and specular estimates for one surfel, `spp` samples of each strategy.
-/// Returns (diffuse, specular, shadow rays traced).
-pub fn shade_point(s: &Surfel, wo: Vec3, p: &SurfaceParams, light: &LightSampler, bvh: &Bvh, settings: &McSettings, rng: &mut Sampler) -> (Vec3, Vec3, u64) {
+/// One contributing sample of a pixel's estimator: incident direction (world and local), the
+/// radiance the light gives along it, and its weight (MIS weight / pdf). Zero-contribution
+/// samples (below the surface, occluded, zero pdf) are not reported.
+#[derive(Clone, Copy, Debug)]
+pub struct McSample {
+    pub wi: Vec3,
+    pub wi_l: Vec3,
+    pub radiance: Vec3,
+    pub weight: f32,
+}
+
+/// The local outgoing direction `shade_point` uses for a surfel: kept just above the shading
+/// horizon, because interpolated normals can face slightly away from the viewer at silhouettes.
+pub fn local_outgoing(s: &Surfel, wo: Vec3) -> (Frame, Vec3) {
     let frame = Frame::from_normal(s.normal);
-    // Interpolated normals can face slightly away from the viewer at silhouettes: keep wo just
-    // above the shading horizon so the BRDF and its sampling stay defined.
     let wo_l = frame.to_local(wo);
     let wo_l = if wo_l.z < COS_EPS { Vec3::new(wo_l.x, wo_l.y, COS_EPS).normalize_or(glam::Vec3::Z) } else { wo_l };
+    (frame, wo_l)
+}
+
+/// Draws one surfel's samples (`spp` of each strategy, balance heuristic) and hands each
+/// contributing one to `visit`; returns the shadow rays traced. The single sampling code path of
+/// the renderer and of the differentiable shader (`montecarlo_op`), so both see the same samples.
+pub fn draw_samples(
+    s: &Surfel,
+    wo: Vec3,
+    p: &SurfaceParams,
+    light: &LightSampler,
+    bvh: &Bvh,
+    settings: &McSettings,
+    rng: &mut Sampler,
+    visit: &mut dyn FnMut(McSample),
+) -> u64 {
+    let (frame, wo_l) = local_outgoing(s, wo);
     let nov = brdf::clamp_cos(wo_l.z);
     let alpha = brdf::alpha_from_roughness(p.roughness);
     let ps = specular_probability(p, nov, settings.effects);
@@ -86,8 +112,8 @@ pub fn shade_point(s: &Surfel, wo: Vec3, p: &SurfaceParams, light: &LightSampler
         pdf
     };
     let origin = s.position + s.geo_normal * settings.ray_epsilon;
-    let rays = std::cell::Cell::new(0u64);
-    let visible = |wi: Vec3| -> bool {
+    let mut rays = 0u64;
+    let mut visible = |wi: Vec3| -> bool {
         // Light arriving from behind the geometric surface is blocked by the surface itself.
         if wi.dot(s.geo_normal) <= 0.0 {
             return false;
@@ -95,22 +121,9 @@ pub fn shade_point(s: &Surfel, wo: Vec3, p: &SurfaceParams, light: &LightSampler
         if !settings.effects.shadows {
             return true;
         }
-        rays.set(rays.get() + 1);
+        rays += 1;
         !bvh.any_hit(origin, wi, settings.ray_epsilon, f32::INFINITY)
     };
-    // Radiance contribution of direction wi (local wi_l) with MIS weight / pdf already folded in `scale`.
-    let contribution = |wi_l: Vec3, radiance: Vec3, scale: f32| -> (Vec3, Vec3) {
-        let cos = brdf::clamp_cos(wi_l.z);
-        let diffuse = radiance * (cos / std::f32::consts::PI * scale);
-        let specular = if settings.effects.specular {
-            brdf::eval(p, wo_l, wi_l).specular * radiance * scale
-        } else {
-            Vec3::ZERO
-        };
-        (diffuse, specular)
-    };
-
-    let (mut diffuse, mut specular) = (Vec3::ZERO, Vec3::ZERO);
     let n = settings.spp.max(1);
     for k in 0..n {
         // Light sample, stratified in its first dimension.
@@ -119,9 +132,7 @@ pub fn shade_point(s: &Surfel, wo: Vec3, p: &SurfaceParams, light: &LightSampler
         let wi_l = frame.to_local(ls.dir);
         if ls.pdf > 0.0 && wi_l.z > 0.0 && visible(ls.dir) {
             let w = ls.pdf / (ls.pdf + bsdf_pdf(wi_l));
-            let (d, sp) = contribution(wi_l, ls.radiance, w / ls.pdf);
-            diffuse += d;
-            specular += sp;
+            visit(McSample { wi: ls.dir, wi_l, radiance: ls.radiance, weight: w / ls.pdf });
         }
         // BSDF sample.
         let lobe = rng.next_f32();
@@ -132,13 +143,27 @@ pub fn shade_point(s: &Surfel, wo: Vec3, p: &SurfaceParams, light: &LightSampler
             let wi = frame.to_world(wi_l);
             if pdf_b > 0.0 && visible(wi) {
                 let w = pdf_b / (pdf_b + light.pdf(wi));
-                let (d, sp) = contribution(wi_l, light.radiance(wi), w / pdf_b);
-                diffuse += d;
-                specular += sp;
+                visit(McSample { wi, wi_l, radiance: light.radiance(wi), weight: w / pdf_b });
             }
         }
     }
-    (diffuse / n as f32, specular / n as f32, rays.get())
+    rays
+}
+
+/// Diffuse (demodulated) and specular estimates for one surfel, `spp` samples of each strategy.
+/// Returns (diffuse, specular, shadow rays traced).
+pub fn shade_point(s: &Surfel, wo: Vec3, p: &SurfaceParams, light: &LightSampler, bvh: &Bvh, settings: &McSettings, rng: &mut Sampler) -> (Vec3, Vec3, u64) {
+    let (_, wo_l) = local_outgoing(s, wo);
+    let (mut diffuse, mut specular) = (Vec3::ZERO, Vec3::ZERO);
+    let rays = draw_samples(s, wo, p, light, bvh, settings, rng, &mut |smp| {
+        let cos = brdf::clamp_cos(smp.wi_l.z);
+        diffuse += smp.radiance * (cos / std::f32::consts::PI * smp.weight);
+        if settings.effects.specular {
+            specular += brdf::eval(p, wo_l, smp.wi_l).specular * smp.radiance * smp.weight;
+        }
+    });
+    let n = settings.spp.max(1) as f32;
+    (diffuse / n, specular / n, rays)
 }
 
 /// Shade every covered pixel. `stream_offset` separates the random streams of different views.

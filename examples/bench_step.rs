@@ -1,0 +1,124 @@
+//! Time of one gradient step (render + backward + Adam; one 256² view; kd/ks textures and the
+//! light as parameters) for split-sum and for Monte Carlo at 4 and 16 spp, and beside it, measured
+//! in the same run, the same step in Mitsuba 3 (`llvm_ad_rgb`, `prb`) on the same mesh, textures,
+//! light and resolution (tools/mitsuba/gradient_step.py; skipped with a note when Mitsuba or its
+//! LLVM is missing).
+//!
+//! cargo run --release --example bench_step [-- --scene nerfactor_hotdog --steps 10 --no-mitsuba]
+
+use std::path::PathBuf;
+use std::process::Command;
+use std::time::Instant;
+
+use anyhow::{Context, Result};
+use clap::Parser;
+use reconstruct::fit::config::FitConfig;
+use reconstruct::fit::fitter::Fit;
+use reconstruct::fit::parameters::Parameters;
+use reconstruct::jobs::reconstruct::{prepare, shading_context, GeometrySource};
+use reconstruct::material::texture_maps::MaterialTextures;
+use reconstruct::render::view::ShadingMode;
+
+#[global_allocator]
+static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
+
+#[derive(Parser)]
+struct Args {
+    #[arg(long, default_value = "nerfactor_hotdog")]
+    scene: String,
+    /// Timed steps per setting (after one warm-up step).
+    #[arg(long, default_value_t = 10)]
+    steps: usize,
+    #[arg(long, default_value_t = 512)]
+    texture_res: usize,
+    #[arg(long, default_value_t = 64)]
+    light_res: usize,
+    #[arg(long)]
+    no_mitsuba: bool,
+}
+
+fn median(mut v: Vec<f64>) -> f64 {
+    v.sort_by(f64::total_cmp);
+    v[v.len() / 2]
+}
+
+fn main() -> Result<()> {
+    let args = Args::parse();
+    let prepared = prepare(&args.scene, None, GeometrySource::GroundTruth, args.texture_res)?;
+    // One view, the first training view, as the Mitsuba script uses.
+    let view = prepared.views[0].clone();
+    println!(
+        "scene {}: view {} ({}×{}, {} covered pixels), textures {}², light 6×{}², effects: shadows {}, specular {}",
+        prepared.spec.name,
+        view.name,
+        view.camera.width,
+        view.camera.height,
+        view.len(),
+        args.texture_res,
+        args.light_res,
+        prepared.effects.effects.shadows,
+        prepared.effects.effects.specular
+    );
+    let settings: Vec<(String, ShadingMode, u32)> = vec![
+        ("split-sum".into(), ShadingMode::SplitSum, 0),
+        ("MC 4 spp".into(), ShadingMode::MonteCarlo, 4),
+        ("MC 16 spp".into(), ShadingMode::MonteCarlo, 16),
+    ];
+    let mut rows = Vec::new();
+    for (name, mode, spp) in settings {
+        let config = FitConfig { mode, spp: spp.max(1), batch: 1, iterations: args.steps + 1, texture_res: args.texture_res, light_res: args.light_res, checkpoint_every: 0, ..FitConfig::default() };
+        let ctx = shading_context(&prepared, &config);
+        let mut fit = Fit::new(config.clone(), Parameters::initial(&config)?, vec![view.clone()], ctx)?;
+        let mut times = Vec::new();
+        for k in 0..=args.steps {
+            let t = Instant::now();
+            match fit.step() {
+                Ok(_) => {}
+                Err(e) => {
+                    println!("{name}: {e:#}");
+                    break;
+                }
+            }
+            if k > 0 {
+                times.push(t.elapsed().as_secs_f64());
+            }
+        }
+        if !times.is_empty() {
+            rows.push((name, median(times)));
+        }
+    }
+    let mitsuba = if args.no_mitsuba { None } else { run_mitsuba(&prepared, &args).map_err(|e| println!("Mitsuba: skipped ({e:#})")).ok() };
+    println!("\n| step (render + backward + Adam), 1 view | reconstruct (s) | Mitsuba 3 llvm_ad_rgb prb (s) |\n|---|---:|---:|");
+    for (name, secs) in &rows {
+        let m = mitsuba.as_ref().and_then(|m: &serde_json::Value| {
+            let spp = if name.starts_with("MC 4") { "4" } else if name.starts_with("MC 16") { "16" } else { return None };
+            m["spp"][spp]["median_s"].as_f64()
+        });
+        println!("| {name} | {secs:.3} | {} |", m.map_or("–".into(), |v| format!("{v:.3}")));
+    }
+    if let Some(m) = &mitsuba {
+        println!("\nMitsuba {} ({}, {} threads); first step incl. JIT: 4 spp {:.2} s, 16 spp {:.2} s",
+            m["mitsuba_version"].as_str().unwrap_or("?"), m["variant"].as_str().unwrap_or("?"), m["threads"], m["spp"]["4"]["first_s"].as_f64().unwrap_or(f64::NAN), m["spp"]["16"]["first_s"].as_f64().unwrap_or(f64::NAN));
+    }
+    Ok(())
+}
+
+/// Writes the step's inputs (atlas mesh, ground-truth-baked textures, training light, camera,
+/// target) with the `step_inputs` example and runs the Mitsuba script on them.
+fn run_mitsuba(prepared: &reconstruct::jobs::reconstruct::Prepared, args: &Args) -> Result<serde_json::Value> {
+    let _ = (prepared, MaterialTextures::constant(1, glam::Vec3::ZERO, 0.5, 0.0));
+    let dir = std::env::temp_dir().join(format!("reconstruct-bench-step-{}", std::process::id()));
+    let exe = std::env::current_exe()?;
+    let step_inputs: PathBuf = exe.with_file_name("step_inputs");
+    let status = Command::new(&step_inputs)
+        .args([dir.to_str().context("temp path")?, "--scene", &args.scene, "--tex", &args.texture_res.to_string(), "--light-res", &args.light_res.to_string()])
+        .status()
+        .with_context(|| format!("running {} (build it with `cargo build --release --examples`)", step_inputs.display()))?;
+    anyhow::ensure!(status.success(), "step_inputs failed");
+    let script = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tools/mitsuba/gradient_step.py");
+    let out = Command::new("python3").arg(&script).arg(&dir).args(["--json", "--steps", &args.steps.to_string()]).output().context("running python3")?;
+    anyhow::ensure!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let text = String::from_utf8_lossy(&out.stdout);
+    let json = text.lines().rev().find(|l| l.trim_start().starts_with('{')).context("no JSON from the Mitsuba script")?;
+    Ok(serde_json::from_str(json)?)
+}

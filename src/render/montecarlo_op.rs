@@ -1,0 +1,249 @@
+//! Differentiable Monte Carlo shading (NVDiffRecMC): the estimator of `montecarlo::shade` as a
+//! tape [`Kernel`], with gradients w.r.t. the per-pixel material and the base cube map of the light.
+//!
+//! Detached sampling, as NVDiffRecMC: [`McShading::prepare`] draws every pixel's samples once per
+//! step with the current (detached) material and light, through the renderer's own
+//! `montecarlo::draw_samples` (same seeded streams, strategies and balance heuristic), traces the
+//! shadow rays, and keeps for each contributing sample its local direction, the light texel it
+//! reads and its weight (MIS weight / pdf). Forward and backward then evaluate the same fixed-sample
+//! estimator: directions, visibility, pdfs, MIS weights and the lobe choice get no gradient;
+//! radiance (a nearest-texel read) is linear in the light; the specular lobe is differentiated by
+//! hand (`material::brdf_grad`). At the prepare-time values the forward equals `montecarlo::shade`.
+//!
+//! Inputs (all f32 or all f64): `kd` [N, 3], `ks` [N, 3] = (occlusion, roughness, metallic),
+//! `light` [6, R, R, 3]. Output [N, 6]: demodulated diffuse light Σ L·cos/π·w (multiply by
+//! kd(1−m)) and specular radiance, each averaged over `spp`. Misses: zero, no gradient.
+
+use std::sync::Arc;
+
+use candle_core::{Result, Tensor};
+use glam::{DVec3, Vec3};
+use rayon::prelude::*;
+
+use crate::geometry::bvh::Bvh;
+use crate::light::sampler::LightSampler;
+use crate::light::CubeMap;
+use crate::material::brdf::clamp_cos;
+use crate::material::brdf_grad::{f0, lobe_and_roughness_grad, schlick_weight};
+use crate::material::SurfaceParams;
+use crate::optim::tape::{apply, scatter_add_banded, Kernel, Real};
+use crate::render::gbuffer::Surfel;
+use crate::render::montecarlo::{draw_samples, local_outgoing, McSettings};
+use crate::rng::Sampler;
+
+/// One pixel's fixed data: its surfel, the direction to the camera and its random stream.
+#[derive(Clone, Copy, Debug)]
+pub struct McPixel {
+    pub surfel: Surfel,
+    pub wo: Vec3,
+    pub stream: u64,
+}
+
+impl McPixel {
+    pub fn from_surfel(surfel: &Surfel, camera_origin: Vec3, stream: u64) -> McPixel {
+        McPixel { surfel: *surfel, wo: (camera_origin - surfel.position).normalize(), stream }
+    }
+}
+
+/// A stored sample: light texel read, local incident direction, weight (MIS / pdf / spp).
+#[derive(Clone, Copy, Debug)]
+struct Stored {
+    texel: u32,
+    wi_l: [f32; 3],
+    weight: f32,
+}
+
+/// The operator for one step's samples (see the module doc).
+#[derive(Clone)]
+pub struct McShading {
+    /// Per pixel: local outgoing direction (None for a miss) and its sample range.
+    wo_l: Arc<[Option<[f32; 3]>]>,
+    offsets: Arc<[u32]>,
+    samples: Arc<[Stored]>,
+    light_res: usize,
+    specular: bool,
+    /// Shadow rays traced by `prepare`.
+    pub shadow_rays: u64,
+}
+
+impl McShading {
+    /// Draws the samples with the current values (`kd`, `ks` per pixel; `light` the base cube map).
+    pub fn prepare(pixels: &[Option<McPixel>], kd: &[[f32; 3]], ks: &[[f32; 3]], light: &CubeMap, bvh: &Bvh, settings: &McSettings) -> McShading {
+        let sampler = LightSampler::new(light);
+        let inv_n = 1.0 / settings.spp.max(1) as f32;
+        let per_pixel: Vec<(Option<[f32; 3]>, Vec<Stored>, u64)> = pixels
+            .par_iter()
+            .enumerate()
+            .map(|(i, px)| {
+                let Some(px) = px else { return (None, Vec::new(), 0) };
+                let p = SurfaceParams { kd: Vec3::from_array(kd[i]), roughness: ks[i][1], metallic: ks[i][2] };
+                let mut rng = Sampler::new(settings.seed, px.stream);
+                let mut stored = Vec::with_capacity(2 * settings.spp as usize);
+                let rays = draw_samples(&px.surfel, px.wo, &p, &sampler, bvh, settings, &mut rng, &mut |s| {
+                    stored.push(Stored { texel: light.nearest_texel(s.wi) as u32, wi_l: s.wi_l.to_array(), weight: s.weight * inv_n });
+                });
+                (Some(local_outgoing(&px.surfel, px.wo).1.to_array()), stored, rays)
+            })
+            .collect();
+        let mut offsets = Vec::with_capacity(pixels.len() + 1);
+        let mut samples = Vec::new();
+        let mut rays = 0;
+        offsets.push(0u32);
+        let mut wo_l = Vec::with_capacity(pixels.len());
+        for (w, s, r) in per_pixel {
+            wo_l.push(w);
+            samples.extend(s);
+            offsets.push(samples.len() as u32);
+            rays += r;
+        }
+        McShading { wo_l: wo_l.into(), offsets: offsets.into(), samples: samples.into(), light_res: light.res, specular: settings.effects.specular, shadow_rays: rays }
+    }
+
+    pub fn len(&self) -> usize {
+        self.wo_l.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.wo_l.is_empty()
+    }
+
+    fn pixel_samples(&self, p: usize) -> &[Stored] {
+        &self.samples[self.offsets[p] as usize..self.offsets[p + 1] as usize]
+    }
+
+    fn check_shapes(&self, shapes: &[&[usize]]) -> Result<()> {
+        let (n, r) = (self.len(), self.light_res);
+        if shapes.len() == 3 && shapes[0] == [n, 3] && shapes[1] == [n, 3] && shapes[2] == [6, r, r, 3] {
+            Ok(())
+        } else {
+            Err(candle_core::Error::Msg(format!(
+                "Monte Carlo shading: expected kd [{n}, 3], ks [{n}, 3] and light [6, {r}, {r}, 3], got {shapes:?}"
+            )))
+        }
+    }
+}
+
+/// Everything about one sample that both passes use.
+struct SampleEval {
+    /// cos/π · weight (the diffuse light's factor).
+    diffuse: f64,
+    /// Fresnel-free lobe S · weight, its ∂/∂roughness, and Schlick's weight.
+    lobe: f64,
+    dlobe: f64,
+    schlick: f64,
+}
+
+fn eval_sample(wo_l: DVec3, s: &Stored, roughness: f64, specular: bool) -> SampleEval {
+    let wi = DVec3::new(s.wi_l[0] as f64, s.wi_l[1] as f64, s.wi_l[2] as f64);
+    let w = s.weight as f64;
+    let diffuse = clamp_cos(s.wi_l[2]) as f64 / std::f64::consts::PI * w;
+    if !specular {
+        return SampleEval { diffuse, lobe: 0.0, dlobe: 0.0, schlick: 0.0 };
+    }
+    let (lobe, dlobe) = lobe_and_roughness_grad(wo_l, wi, roughness);
+    SampleEval { diffuse, lobe: lobe * w, dlobe: dlobe * w, schlick: schlick_weight(wo_l, wi) }
+}
+
+fn rgb<T: Real>(x: &[T], i: usize) -> [f64; 3] {
+    [x[3 * i].to_f64(), x[3 * i + 1].to_f64(), x[3 * i + 2].to_f64()]
+}
+
+impl Kernel for McShading {
+    fn name(&self) -> &'static str {
+        "montecarlo_shading"
+    }
+
+    fn output_shape(&self, shapes: &[&[usize]]) -> Result<Vec<usize>> {
+        self.check_shapes(shapes)?;
+        Ok(vec![self.len(), 6])
+    }
+
+    fn forward<T: Real>(&self, x: &[&[T]], _shapes: &[&[usize]], out: &mut [T]) -> Result<()> {
+        let (kd, ks, light) = (x[0], x[1], x[2]);
+        out.par_chunks_mut(6).enumerate().for_each(|(p, o)| {
+            let Some(wo) = self.wo_l[p] else { return };
+            let wo = DVec3::new(wo[0] as f64, wo[1] as f64, wo[2] as f64);
+            let (k, rough, metal) = (rgb(kd, p), ks[3 * p + 1].to_f64(), ks[3 * p + 2].to_f64());
+            let f0 = f0(k, metal);
+            let mut acc = [0.0f64; 6];
+            for s in self.pixel_samples(p) {
+                let e = eval_sample(wo, s, rough, self.specular);
+                let l = rgb(light, s.texel as usize);
+                for c in 0..3 {
+                    acc[c] += e.diffuse * l[c];
+                    acc[3 + c] += (f0[c] * (1.0 - e.schlick) + e.schlick) * e.lobe * l[c];
+                }
+            }
+            for (o, a) in o.iter_mut().zip(acc) {
+                *o = T::from_f64(a);
+            }
+        });
+        Ok(())
+    }
+
+    fn backward<T: Real>(&self, x: &[&[T]], _shapes: &[&[usize]], g_out: &[T], grads: &mut [Option<&mut [T]>]) -> Result<()> {
+        let (kd, ks, light) = (x[0], x[1], x[2]);
+        let pixel = |p: usize| -> Option<(DVec3, [f64; 3], f64, f64, [f64; 6])> {
+            let wo = self.wo_l[p]?;
+            let g: [f64; 6] = std::array::from_fn(|c| g_out[6 * p + c].to_f64());
+            Some((DVec3::new(wo[0] as f64, wo[1] as f64, wo[2] as f64), rgb(kd, p), ks[3 * p + 1].to_f64(), ks[3 * p + 2].to_f64(), g))
+        };
+        if self.specular && (grads[0].is_some() || grads[1].is_some()) {
+            // Material gradients: one pass over each pixel's samples.
+            let per_pixel: Vec<([f64; 3], f64, f64)> = (0..self.len())
+                .into_par_iter()
+                .map(|p| {
+                    let Some((wo, k, rough, metal, g)) = pixel(p) else { return ([0.0; 3], 0.0, 0.0) };
+                    let f0 = f0(k, metal);
+                    let (mut gkd, mut gr, mut gm) = ([0.0f64; 3], 0.0, 0.0);
+                    for s in self.pixel_samples(p) {
+                        let e = eval_sample(wo, s, rough, true);
+                        let l = rgb(light, s.texel as usize);
+                        for c in 0..3 {
+                            let gs = g[3 + c] * l[c];
+                            let fresnel = f0[c] * (1.0 - e.schlick) + e.schlick;
+                            gkd[c] += gs * e.lobe * (1.0 - e.schlick) * metal;
+                            gm += gs * e.lobe * (1.0 - e.schlick) * (k[c] - 0.04);
+                            gr += gs * fresnel * e.dlobe;
+                        }
+                    }
+                    (gkd, gr, gm)
+                })
+                .collect();
+            if let Some(gkd) = grads[0].as_deref_mut() {
+                gkd.par_chunks_mut(3).zip(per_pixel.par_iter()).for_each(|(o, (g, _, _))| {
+                    for c in 0..3 {
+                        o[c] += T::from_f64(g[c]);
+                    }
+                });
+            }
+            if let Some(gks) = grads[1].as_deref_mut() {
+                gks.par_chunks_mut(3).zip(per_pixel.par_iter()).for_each(|(o, (_, gr, gm))| {
+                    o[1] += T::from_f64(*gr);
+                    o[2] += T::from_f64(*gm);
+                });
+            }
+        }
+        if let Some(glight) = grads[2].as_deref_mut() {
+            let mut acc = vec![0.0f64; glight.len()];
+            scatter_add_banded(&mut acc, self.len(), |p, sink| {
+                let Some((wo, k, rough, metal, g)) = pixel(p) else { return };
+                let f0 = f0(k, metal);
+                for s in self.pixel_samples(p) {
+                    let e = eval_sample(wo, s, rough, self.specular);
+                    for c in 0..3 {
+                        let spec = (f0[c] * (1.0 - e.schlick) + e.schlick) * e.lobe;
+                        sink.add(3 * s.texel as usize + c, g[c] * e.diffuse + g[3 + c] * spec);
+                    }
+                }
+            });
+            glight.par_iter_mut().zip(acc.par_iter()).for_each(|(a, b)| *a += T::from_f64(*b));
+        }
+        Ok(())
+    }
+}
+
+/// Demodulated diffuse light and specular radiance [N, 6] on the tape.
+pub fn shade_mc(op: &McShading, kd: &Tensor, ks: &Tensor, light: &Tensor) -> Result<Tensor> {
+    apply(op.clone(), &[kd, ks, light])
+}
