@@ -13,5 +13,6 @@ pub mod math;
 pub mod optim;
 pub mod prior;
 pub mod render;
+pub mod report;
 pub mod rng;
 pub mod scene;

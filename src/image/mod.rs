@@ -1,6 +1,7 @@
 //! Pictures in memory (linear f32, interleaved channels) and their files (PNG, EXR, HDR).
 
 mod buffer;
+pub mod contact_sheet;
 pub mod io;
 
 pub use buffer::Image;

@@ -2,4 +2,5 @@
 //! parses arguments and prints.
 
 pub mod reconstruct;
+pub mod report_markdown;
 pub mod render;

@@ -24,6 +24,7 @@ use crate::fit::training_view::TrainingView;
 use crate::geometry::atlas::{self, Atlas, AtlasSource};
 use crate::geometry::bvh::Bvh;
 use crate::jobs::render::ground_truth_mesh;
+use crate::jobs::report_markdown::{markdown, write_plots};
 use crate::light::brdf_lut::BrdfLut;
 use crate::light::prefilter::PrefilterOptions;
 use crate::render::effects::{self, EffectChoice};
@@ -199,6 +200,9 @@ pub fn run_prepared(prepared: &Prepared, views: Vec<TrainingView>, opts: &Recons
     };
     let path = opts.out.join("report.json");
     std::fs::write(&path, serde_json::to_string_pretty(&report)?).with_context(|| format!("cannot write {}", path.display()))?;
+    let plots = write_plots(&opts.out, &report.history)?;
+    let path = opts.out.join("report.md");
+    std::fs::write(&path, markdown(&report, &plots)).with_context(|| format!("cannot write {}", path.display()))?;
     Ok(report)
 }
 
