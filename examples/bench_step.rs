@@ -44,7 +44,7 @@ fn median(mut v: Vec<f64>) -> f64 {
 
 fn main() -> Result<()> {
     let args = Args::parse();
-    let prepared = prepare(&args.scene, None, GeometrySource::GroundTruth, args.texture_res)?;
+    let prepared = prepare(&args.scene, None, GeometrySource::GroundTruth, args.texture_res, 1)?;
     // One view, the first training view, as the Mitsuba script uses.
     let view = prepared.views[0].clone();
     println!(

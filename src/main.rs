@@ -5,6 +5,8 @@ use std::path::PathBuf;
 use anyhow::Result;
 use clap::{Parser, Subcommand, ValueEnum};
 use reconstruct::fit::config::FitConfig;
+use reconstruct::jobs::ablation;
+use reconstruct::prior::source::PriorSource;
 use reconstruct::jobs::reconstruct::{run as run_job, GeometrySource, ReconstructOptions};
 use reconstruct::jobs::render::{run, RenderOptions};
 use reconstruct::render::view::ShadingMode;
@@ -87,6 +89,15 @@ struct ReconstructArgs {
     /// Run folder (default: runs/<scene>-<prior>-<mode>). A rerun resumes from its checkpoint.
     #[arg(long)]
     out: Option<PathBuf>,
+    /// Training views the prior labels (evenly spread; labelling with IDArb is expensive).
+    #[arg(long, default_value_t = 100)]
+    labelled_views: usize,
+    /// Weight of every prior component (albedo, roughness, metallic).
+    #[arg(long)]
+    prior_weight: Option<f64>,
+    /// IDArb weights folder for --prior idarb (else the IDARB_WEIGHTS variable).
+    #[arg(long)]
+    idarb_weights: Option<PathBuf>,
     /// Hide the progress bar.
     #[arg(long)]
     quiet: bool,
@@ -101,6 +112,25 @@ enum Mode {
 
 #[derive(Subcommand)]
 enum Command {
+    /// The prior ablation in one command: the same run with no prior, simulated IDArb labels and
+    /// the ground truth as labels, side by side (a few minutes on the default scene).
+    Ablation {
+        #[arg(long, default_value = "default")]
+        scene: String,
+        #[arg(long, default_value_t = 300)]
+        iterations: usize,
+        /// Shading during optimisation.
+        #[arg(long, value_enum, default_value = "split-sum")]
+        mode: TrainMode,
+        /// idarb-sim levels of a prior-quality sweep (e.g. 0,0.5,1,2); none by default.
+        #[arg(long, value_delimiter = ',')]
+        sweep: Vec<f64>,
+        #[arg(long, default_value_t = 8)]
+        eval_spp: u32,
+        /// Output folder (default: runs/ablation-<scene>).
+        #[arg(long)]
+        out: Option<PathBuf>,
+    },
     /// Render a scene's ground truth under probes and compare with the dataset's images.
     Render {
         /// Scene name (scenes/NAME.toml) or spec file path.
@@ -142,11 +172,13 @@ fn reconstruct(a: ReconstructArgs) -> Result<()> {
     if let Some(v) = a.lr_material { fit.lr_material = v; }
     if let Some(v) = a.lr_light { fit.lr_light = v; }
     if let Some(v) = a.light_balance { fit.regularizers.light_white_balance = v; }
+    if let Some(v) = a.prior_weight { fit.prior.albedo = v; fit.prior.roughness = v; fit.prior.metallic = v; }
+    let prior: PriorSource = a.prior.parse()?;
     let mode_tag = match fit.mode { ShadingMode::SplitSum => "splitsum", ShadingMode::MonteCarlo => "mc" };
     let out = a.out.unwrap_or_else(|| PathBuf::from(format!("runs/{}-{}-{mode_tag}", a.scene, a.prior.replace([':', '/'], "_"))));
     let geometry = match a.geometry { Geometry::Gt => GeometrySource::GroundTruth };
-    let opts = ReconstructOptions { scene: a.scene, data: a.data, geometry, fit, eval_spp: a.eval_spp, out: out.clone(), progress: !a.quiet };
-    let report = run_job(&opts, &a.prior)?;
+    let opts = ReconstructOptions { scene: a.scene, data: a.data, geometry, fit, eval_spp: a.eval_spp, out: out.clone(), progress: !a.quiet, labelled_views: a.labelled_views, idarb_weights: a.idarb_weights, effects_override: None, eval_test_views: None };
+    let report = run_job(&opts, &prior)?;
     println!("{}", report.summary());
     println!("wrote {}", out.display());
     Ok(())
@@ -156,6 +188,27 @@ fn main() -> Result<()> {
     let cli = Cli::parse();
     let Some(command) = cli.command else { return reconstruct(cli.reconstruct) };
     match command {
+        Command::Ablation { scene, iterations, mode, sweep, eval_spp, out } => {
+            let mode = match mode { TrainMode::SplitSum => ShadingMode::SplitSum, TrainMode::Mc => ShadingMode::MonteCarlo };
+            let out = out.unwrap_or_else(|| ablation::default_out(&scene));
+            let base = ReconstructOptions {
+                scene,
+                data: None,
+                geometry: GeometrySource::GroundTruth,
+                fit: FitConfig { mode, iterations, ..FitConfig::default() },
+                eval_spp,
+                out: out.clone(),
+                progress: true,
+                labelled_views: usize::MAX,
+                idarb_weights: None,
+                effects_override: None,
+                eval_test_views: None,
+            };
+            let sources = vec![PriorSource::None, PriorSource::IdarbSim(1.0), PriorSource::Oracle];
+            let report = ablation::run(&ablation::AblationOptions { base, sources, sweep })?;
+            println!("{}", report.markdown());
+            println!("wrote {}", out.join("ablation.md").display());
+        }
         Command::Render { scene, data, views, probes, mode, spp, supersample, seed, out } => {
             let modes = match mode {
                 Mode::SplitSum => vec![ShadingMode::SplitSum],

@@ -66,6 +66,10 @@ pub struct FitConfig {
     pub seed: u64,
     /// Iterations between checkpoints (0 = none).
     pub checkpoint_every: usize,
+    /// The label source (set by the job; part of the fingerprint so a checkpoint made with
+    /// another prior is never resumed).
+    #[serde(default)]
+    pub prior_source: String,
 }
 
 impl Default for FitConfig {
@@ -90,6 +94,7 @@ impl Default for FitConfig {
             prior: PriorWeights::default(),
             seed: 0,
             checkpoint_every: 100,
+            prior_source: "none".into(),
         }
     }
 }

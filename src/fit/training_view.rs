@@ -40,10 +40,23 @@ pub struct TrainingView {
 }
 
 impl TrainingView {
-    /// Trace `view`'s camera against the atlas mesh and gather its target at the covered pixels.
-    pub fn new(view: &View, index: usize, mesh: &Mesh, bvh: &Bvh) -> Result<TrainingView> {
+    /// Trace `view`'s camera against the atlas mesh and gather its target at the covered pixels;
+    /// `downscale` > 1 uses a camera that many times smaller and a box-filtered target.
+    pub fn new(view: &View, index: usize, mesh: &Mesh, bvh: &Bvh, downscale: usize) -> Result<TrainingView> {
         let rgba = view.load_rgba().with_context(|| format!("training view {}", view.name))?;
-        Self::from_image(&view.name, &view.camera, index, &rgba, mesh, bvh)
+        let s = downscale.max(1);
+        if s == 1 {
+            return Self::from_image(&view.name, &view.camera, index, &rgba, mesh, bvh);
+        }
+        // Average premultiplied colour, then divide by the averaged alpha (straight alpha again).
+        let mut pre = rgba.clone();
+        for p in pre.data.chunks_exact_mut(4) {
+            let a = p[3];
+            p[..3].iter_mut().for_each(|c| *c *= a);
+        }
+        let small = crate::render::view::unpremultiply(pre.downsample_box(s));
+        let camera = view.camera.resized(view.camera.width / s, view.camera.height / s);
+        Self::from_image(&view.name, &camera, index, &small, mesh, bvh)
     }
 
     /// As [`TrainingView::new`] with the target given (linear RGBA at the camera's size).

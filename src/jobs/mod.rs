@@ -1,6 +1,8 @@
 //! What the command line runs: each job is a library function with plain options, so the CLI only
 //! parses arguments and prints.
 
+pub mod ablation;
 pub mod reconstruct;
 pub mod report_markdown;
 pub mod render;
+pub mod tradeoff;

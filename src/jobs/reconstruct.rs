@@ -19,6 +19,9 @@ use crate::fit::evaluate::{evaluate, EvalSettings, Evaluation};
 use crate::fit::export::{write_light, write_model, write_render};
 use crate::fit::fitter::Fit;
 use crate::fit::history::IterationRecord;
+use crate::fit::labels::PixelLabels;
+use crate::prior::idarb::labels::IdarbOptions;
+use crate::prior::source::{make_prior, PriorContext, PriorSource};
 use crate::fit::parameters::Parameters;
 use crate::fit::training_view::TrainingView;
 use crate::geometry::atlas::{self, Atlas, AtlasSource};
@@ -27,7 +30,7 @@ use crate::jobs::render::ground_truth_mesh;
 use crate::jobs::report_markdown::{markdown, write_plots};
 use crate::light::brdf_lut::BrdfLut;
 use crate::light::prefilter::PrefilterOptions;
-use crate::render::effects::{self, EffectChoice};
+use crate::render::effects::{self, EffectChoice, Effects};
 use crate::render::gbuffer::GBuffer;
 use crate::render::splitsum_op::LightMaps;
 use crate::render::view::{ray_epsilon, ShadingMode};
@@ -52,6 +55,14 @@ pub struct ReconstructOptions {
     pub eval_spp: u32,
     pub out: PathBuf,
     pub progress: bool,
+    /// Training views the prior labels (evenly spread).
+    pub labelled_views: usize,
+    /// IDArb weights folder for `--prior idarb` (else `$IDARB_WEIGHTS`).
+    pub idarb_weights: Option<PathBuf>,
+    /// Effects forced on or off instead of the scene's choice (trade-off studies).
+    pub effects_override: Option<Effects>,
+    /// Relight at most this many test views (None = all).
+    pub eval_test_views: Option<usize>,
 }
 
 /// Everything a run needs that does not depend on the fit settings (reused across ablation runs).
@@ -66,7 +77,8 @@ pub struct Prepared {
 }
 
 /// Load the scene, build the atlas and BVH, choose the effects, trace the training views.
-pub fn prepare(scene: &str, data: Option<&PathBuf>, geometry: GeometrySource, texture_res: usize) -> Result<Prepared> {
+/// `downscale` > 1 trains on views `downscale`× smaller (box-filtered targets).
+pub fn prepare(scene: &str, data: Option<&PathBuf>, geometry: GeometrySource, texture_res: usize, downscale: usize) -> Result<Prepared> {
     let mut stages = Vec::new();
     let t = Instant::now();
     let mut spec = SceneSpec::find(scene)?;
@@ -98,7 +110,7 @@ pub fn prepare(scene: &str, data: Option<&PathBuf>, geometry: GeometrySource, te
 
     let t = Instant::now();
     let views: Vec<TrainingView> =
-        dataset.train.iter().enumerate().map(|(i, v)| TrainingView::new(v, i, &atlas.mesh, &bvh)).collect::<Result<_>>()?;
+        dataset.train.iter().enumerate().map(|(i, v)| TrainingView::new(v, i, &atlas.mesh, &bvh, downscale)).collect::<Result<_>>()?;
     if views.iter().all(|v| v.is_empty()) {
         bail!("no training view of scene {:?} sees the mesh: check the cameras and the geometry", spec.name);
     }
@@ -148,7 +160,9 @@ fn atlas_description(a: &Atlas) -> String {
 pub fn run_prepared(prepared: &Prepared, views: Vec<TrainingView>, opts: &ReconstructOptions, prior: &str) -> Result<ReconstructReport> {
     let mut stages = prepared.stage_seconds.clone();
     std::fs::create_dir_all(&opts.out).with_context(|| format!("cannot create the run folder {}", opts.out.display()))?;
-    let ctx = shading_context(prepared, &opts.fit);
+    let mut ctx = shading_context(prepared, &opts.fit);
+    let effects = opts.effects_override.unwrap_or(prepared.effects.effects);
+    ctx.effects = effects;
     let mut fit = Fit::new(opts.fit.clone(), Parameters::initial(&opts.fit)?, views, ctx)?;
     let checkpoint_dir = opts.out.join("checkpoint");
     if fit.resume(&checkpoint_dir)? && opts.progress {
@@ -175,10 +189,10 @@ pub fn run_prepared(prepared: &Prepared, views: Vec<TrainingView>, opts: &Recons
         spp: opts.eval_spp,
         supersample: 2,
         seed: opts.fit.seed,
-        effects: prepared.effects.effects,
+        effects,
         train_mode: opts.fit.mode,
         train_view_stride: 10,
-        max_test_views: None,
+        max_test_views: opts.eval_test_views,
     };
     let evaluated = evaluate(&prepared.dataset, &prepared.atlas.mesh, &prepared.bvh, &textures, &light, &test_probes, &settings)?;
     for (name, img) in &evaluated.val_renders {
@@ -206,18 +220,62 @@ pub fn run_prepared(prepared: &Prepared, views: Vec<TrainingView>, opts: &Recons
     Ok(report)
 }
 
-/// Prepare the scene and run (the `reconstruct` command).
-pub fn run(opts: &ReconstructOptions, prior: &str) -> Result<ReconstructReport> {
-    if prior != "none" {
-        bail!("--prior {prior}: label sources other than `none` are not wired yet");
+/// Which training views get labels: every `stride`-th, `count` of them (labelling is expensive).
+pub fn labelled_views(total: usize, count: usize) -> Vec<usize> {
+    let count = count.min(total);
+    if count == 0 {
+        return Vec::new();
     }
-    let prepared = prepare(&opts.scene, opts.data.as_ref(), opts.geometry, opts.fit.texture_res)?;
+    (0..count).map(|k| k * total / count).collect()
+}
+
+/// The training views with the prior's labels attached (a copy of `prepared.views`), and the
+/// prior's description for the report.
+pub fn views_with_prior(prepared: &Prepared, source: &PriorSource, ctx: &PriorContext, labelled: usize) -> Result<(Vec<TrainingView>, String)> {
+    let prior = make_prior(source, ctx)?;
+    let mut views = prepared.views.clone();
+    if *source == PriorSource::None {
+        return Ok((views, prior.describe()));
+    }
+    let which = labelled_views(views.len(), labelled);
+    let labels = prior.labels(&prepared.dataset, &which).with_context(|| format!("getting labels from --prior {}", source.tag()))?;
+    let mut count = 0;
+    for (&i, l) in which.iter().zip(labels) {
+        if let Some(l) = l {
+            let v = &mut views[i];
+            v.labels = Some(PixelLabels::gather(&l, &v.pixels, v.camera.width, v.camera.height, &v.name)?);
+            count += 1;
+        }
+    }
+    Ok((views, format!("{} — {count} of {} training views labelled", prior.describe(), prepared.views.len())))
+}
+
+/// The prior context of a run on `prepared` (geometry for simulated labels, cache for IDArb's).
+pub fn prior_context(prepared: &Prepared, seed: u64, idarb_weights: Option<PathBuf>) -> PriorContext {
+    PriorContext {
+        idarb_weights,
+        cache_dir: crate::scene::spec::cache_dir(),
+        idarb: IdarbOptions::default(),
+        seed,
+        geometry: Some(Arc::new((prepared.atlas.mesh.clone(), Bvh::build(&prepared.atlas.mesh)))),
+    }
+}
+
+/// Prepare the scene and run (the `reconstruct` command).
+pub fn run(opts: &ReconstructOptions, prior: &PriorSource) -> Result<ReconstructReport> {
+    let prepared = prepare(&opts.scene, opts.data.as_ref(), opts.geometry, opts.fit.texture_res, 1)?;
     if opts.progress {
         eprintln!("scene {}: {} training views; atlas: {}", prepared.spec.name, prepared.views.len(), atlas_description(&prepared.atlas));
         eprintln!("effects: {}", prepared.effects);
     }
-    let views = prepared.views.clone();
-    run_prepared(&prepared, views, opts, prior)
+    let ctx = prior_context(&prepared, opts.fit.seed, opts.idarb_weights.clone());
+    let (views, description) = views_with_prior(&prepared, prior, &ctx, opts.labelled_views)?;
+    if opts.progress {
+        eprintln!("prior: {description}");
+    }
+    let mut opts = opts.clone();
+    opts.fit.prior_source = prior.tag();
+    run_prepared(&prepared, views, &opts, &description)
 }
 
 impl ReconstructReport {

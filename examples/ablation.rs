@@ -1,0 +1,78 @@
+//! The prior ablation (issue 5): none / idarb-sim / oracle (and idarb or labels:DIR when asked) on
+//! one scene with the same seed, budget and settings, plus the prior-quality sweep; writes
+//! ablation.md, ablation.json and prior_quality.png.
+//!
+//! cargo run --release --example ablation -- [--scene nerfactor_hotdog] [--iterations 1500]
+//!     [--mode split-sum|mc] [--sweep 0.5,1.5,2] [--labels DIR] [--idarb] [--out DIR]
+
+use std::path::PathBuf;
+
+use anyhow::Result;
+use clap::Parser;
+use reconstruct::fit::config::FitConfig;
+use reconstruct::jobs::ablation::{default_out, run, AblationOptions};
+use reconstruct::jobs::reconstruct::{GeometrySource, ReconstructOptions};
+use reconstruct::prior::source::PriorSource;
+use reconstruct::render::view::ShadingMode;
+
+#[global_allocator]
+static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
+
+#[derive(Parser)]
+struct Args {
+    #[arg(long, default_value = "nerfactor_hotdog")]
+    scene: String,
+    #[arg(long, default_value_t = 1500)]
+    iterations: usize,
+    /// split-sum or mc.
+    #[arg(long, default_value = "split-sum")]
+    mode: String,
+    /// idarb-sim levels of the prior-quality sweep (0 = oracle); empty for none.
+    #[arg(long, value_delimiter = ',', default_value = "0,0.5,1,1.5,2")]
+    sweep: Vec<f64>,
+    /// Also run --prior labels:DIR.
+    #[arg(long)]
+    labels: Option<PathBuf>,
+    /// Also run --prior idarb (cached labels or the network with IDARB_WEIGHTS).
+    #[arg(long)]
+    idarb: bool,
+    #[arg(long, default_value_t = 8)]
+    eval_spp: u32,
+    #[arg(long)]
+    out: Option<PathBuf>,
+}
+
+fn main() -> Result<()> {
+    let a = Args::parse();
+    let mode = match a.mode.as_str() {
+        "mc" => ShadingMode::MonteCarlo,
+        "split-sum" => ShadingMode::SplitSum,
+        other => anyhow::bail!("--mode {other}: use split-sum or mc"),
+    };
+    let fit = FitConfig { mode, iterations: a.iterations, ..FitConfig::default() };
+    let out = a.out.unwrap_or_else(|| default_out(&a.scene));
+    let base = ReconstructOptions {
+        scene: a.scene,
+        data: None,
+        geometry: GeometrySource::GroundTruth,
+        fit,
+        eval_spp: a.eval_spp,
+        out: out.clone(),
+        progress: true,
+        labelled_views: usize::MAX,
+        idarb_weights: None,
+        effects_override: None,
+        eval_test_views: None,
+    };
+    let mut sources = vec![PriorSource::None, PriorSource::IdarbSim(1.0), PriorSource::Oracle];
+    if a.idarb {
+        sources.push(PriorSource::Idarb);
+    }
+    if let Some(d) = a.labels {
+        sources.push(PriorSource::LabelsDir(d));
+    }
+    let report = run(&AblationOptions { base, sources, sweep: a.sweep })?;
+    println!("{}", report.markdown());
+    println!("wrote {}", out.join("ablation.md").display());
+    Ok(())
+}

@@ -1,0 +1,54 @@
+//! What accuracy costs in time (issue 5): sweeps shading mode, samples per pixel, the denoiser,
+//! resolution, shadows, iterations and labelled-view count on one scene; writes tradeoff.csv and
+//! tradeoff.png (Pareto front marked) and prints the front.
+//!
+//! cargo run --release --example tradeoff -- [--scene nerfactor_hotdog] [--iterations 300] [--out DIR]
+
+use std::path::PathBuf;
+
+use anyhow::Result;
+use clap::Parser;
+use reconstruct::fit::config::FitConfig;
+use reconstruct::jobs::reconstruct::{GeometrySource, ReconstructOptions};
+use reconstruct::jobs::tradeoff::{default_out, default_points, front_table, run};
+
+#[global_allocator]
+static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
+
+#[derive(Parser)]
+struct Args {
+    #[arg(long, default_value = "nerfactor_hotdog")]
+    scene: String,
+    /// Base iteration count (the sweep also runs ⅓× and 3×).
+    #[arg(long, default_value_t = 300)]
+    iterations: usize,
+    /// Test views relit per point (all 8 probes each).
+    #[arg(long, default_value_t = 2)]
+    test_views: usize,
+    #[arg(long, default_value_t = 8)]
+    eval_spp: u32,
+    #[arg(long)]
+    out: Option<PathBuf>,
+}
+
+fn main() -> Result<()> {
+    let a = Args::parse();
+    let out = a.out.unwrap_or_else(|| default_out(&a.scene));
+    let base = ReconstructOptions {
+        scene: a.scene,
+        data: None,
+        geometry: GeometrySource::GroundTruth,
+        fit: FitConfig { checkpoint_every: 0, ..FitConfig::default() },
+        eval_spp: a.eval_spp,
+        out: out.clone(),
+        progress: false,
+        labelled_views: 100,
+        idarb_weights: None,
+        effects_override: None,
+        eval_test_views: Some(a.test_views),
+    };
+    let results = run(&base, &default_points(a.iterations))?;
+    println!("{}", front_table(&results));
+    println!("wrote {} and {}", out.join("tradeoff.csv").display(), out.join("tradeoff.png").display());
+    Ok(())
+}

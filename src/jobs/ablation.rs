@@ -1,0 +1,145 @@
+//! The prior ablation: the same scene, seed, budget and settings optimised with each label
+//! source (none, idarb-sim, oracle, and idarb / labels:DIR when asked), plus a prior-quality sweep
+//! (the simulated error scaled from 0 to 2× IDArb's) against relighting PSNR. Writes
+//! `ablation.md`, `ablation.json` and `prior_quality.png`; each run keeps its own run folder.
+
+use std::fmt::Write;
+use std::path::PathBuf;
+use std::time::Instant;
+
+use anyhow::{Context, Result};
+use serde::Serialize;
+
+use crate::fit::evaluate::Evaluation;
+use crate::prior::source::PriorSource;
+use crate::report::plot::{write_line_plot, LinePlot, Series};
+
+use super::reconstruct::{prepare, prior_context, run_prepared, views_with_prior, GeometrySource, ReconstructOptions};
+
+#[derive(Clone, Debug)]
+pub struct AblationOptions {
+    /// Settings shared by every run (`out` is the ablation folder).
+    pub base: ReconstructOptions,
+    /// Sources of the table, in order.
+    pub sources: Vec<PriorSource>,
+    /// Levels of the prior-quality sweep (idarb-sim:LEVEL); levels already in `sources` are reused.
+    pub sweep: Vec<f64>,
+}
+
+#[derive(Clone, Debug, Serialize)]
+pub struct AblationRow {
+    pub prior: String,
+    pub description: String,
+    pub evaluation: Evaluation,
+    pub seconds: f64,
+}
+
+#[derive(Clone, Debug, Serialize)]
+pub struct AblationReport {
+    pub scene: String,
+    pub rows: Vec<AblationRow>,
+    /// (level, relighting PSNR scaled, raw) of the sweep.
+    pub sweep: Vec<(f64, Option<f64>, Option<f64>)>,
+}
+
+fn f(v: Option<f64>, d: usize) -> String {
+    v.map_or("–".into(), |v| format!("{v:.d$}"))
+}
+
+impl AblationReport {
+    pub fn markdown(&self) -> String {
+        let mut s = format!("# Prior ablation: {}\n\n", self.scene);
+        s.push_str("| prior | albedo PSNR raw | albedo PSNR scaled | relight PSNR raw | relight PSNR scaled | roughness MSE | metallic MSE | normal error (°) | wall time (s) |\n");
+        s.push_str("|---|---:|---:|---:|---:|---:|---:|---:|---:|\n");
+        for r in &self.rows {
+            let e = &r.evaluation;
+            let _ = writeln!(
+                s,
+                "| {} | {} | {} | {} | {} | {} | {} | {} | {:.0} |",
+                r.prior,
+                f(e.albedo_psnr_raw, 2),
+                f(e.albedo_psnr_scaled, 2),
+                f(e.relight_psnr_raw, 2),
+                f(e.relight_psnr_scaled, 2),
+                f(e.roughness_mse, 4),
+                f(e.metallic_mse, 4),
+                f(e.normal_error_deg, 2),
+                r.seconds
+            );
+        }
+        s.push_str("\nSources:\n");
+        for r in &self.rows {
+            let _ = writeln!(s, "- `{}`: {}", r.prior, r.description);
+        }
+        if !self.sweep.is_empty() {
+            s.push_str("\n## Prior quality (idarb-sim level: 0 = oracle, 1 = IDArb's published error)\n\n| level | relight PSNR scaled | relight PSNR raw |\n|---:|---:|---:|\n");
+            for (l, sc, raw) in &self.sweep {
+                let _ = writeln!(s, "| {l} | {} | {} |", f(*sc, 2), f(*raw, 2));
+            }
+            s.push_str("\n![prior quality](prior_quality.png)\n");
+        }
+        s
+    }
+}
+
+pub fn run(opts: &AblationOptions) -> Result<AblationReport> {
+    let base = &opts.base;
+    std::fs::create_dir_all(&base.out).with_context(|| format!("cannot create {}", base.out.display()))?;
+    let prepared = prepare(&base.scene, base.data.as_ref(), GeometrySource::GroundTruth, base.fit.texture_res, 1)?;
+    let ctx = prior_context(&prepared, base.fit.seed, base.idarb_weights.clone());
+    let mut sources = opts.sources.clone();
+    for &l in &opts.sweep {
+        let s = if l == 0.0 { PriorSource::Oracle } else { PriorSource::IdarbSim(l) };
+        if !sources.contains(&s) {
+            sources.push(s);
+        }
+    }
+    let mut rows = Vec::new();
+    for source in &sources {
+        let t = Instant::now();
+        let (views, description) = match views_with_prior(&prepared, source, &ctx, base.labelled_views) {
+            Ok(v) => v,
+            Err(e) => {
+                eprintln!("ablation: skipping --prior {}: {e:#}", source.tag());
+                continue;
+            }
+        };
+        let mut o = base.clone();
+        o.out = base.out.join(source.tag().replace([':', '/'], "_"));
+        o.fit.prior_source = source.tag();
+        eprintln!("ablation: {} → {}", source.tag(), o.out.display());
+        let report = run_prepared(&prepared, views, &o, &description)?;
+        rows.push(AblationRow { prior: source.tag(), description, evaluation: report.evaluation, seconds: t.elapsed().as_secs_f64() });
+    }
+    let level_of = |r: &AblationRow| -> Option<f64> {
+        match r.prior.parse::<PriorSource>().ok()? {
+            PriorSource::Oracle => Some(0.0),
+            PriorSource::IdarbSim(l) => Some(l),
+            _ => None,
+        }
+    };
+    let mut sweep: Vec<(f64, Option<f64>, Option<f64>)> =
+        rows.iter().filter_map(|r| level_of(r).filter(|l| opts.sweep.contains(l)).map(|l| (l, r.evaluation.relight_psnr_scaled, r.evaluation.relight_psnr_raw))).collect();
+    sweep.sort_by(|a, b| a.0.total_cmp(&b.0));
+    let report = AblationReport { scene: prepared.spec.name.clone(), rows, sweep };
+    if !report.sweep.is_empty() {
+        let none = report.rows.iter().find(|r| r.prior == "none").and_then(|r| r.evaluation.relight_psnr_scaled);
+        let (lo, hi) = (report.sweep[0].0, report.sweep[report.sweep.len() - 1].0);
+        let mut series = vec![Series { name: "idarb-sim (scaled)".into(), points: report.sweep.iter().filter_map(|(l, s, _)| Some((*l, (*s)?))).collect() }];
+        if let Some(n) = none {
+            series.push(Series { name: "no prior (scaled)".into(), points: vec![(lo, n), (hi, n)] });
+        }
+        write_line_plot(
+            &LinePlot { title: format!("{}: relighting PSNR vs prior error", report.scene), x_label: "simulated error (× IDArb's)".into(), y_label: "relighting PSNR (dB)".into(), log_y: false, series },
+            &base.out.join("prior_quality.png"),
+        )?;
+    }
+    std::fs::write(base.out.join("ablation.json"), serde_json::to_string_pretty(&report)?)?;
+    std::fs::write(base.out.join("ablation.md"), report.markdown())?;
+    Ok(report)
+}
+
+/// The ablation folder for a scene.
+pub fn default_out(scene: &str) -> PathBuf {
+    PathBuf::from(format!("runs/ablation-{scene}"))
+}

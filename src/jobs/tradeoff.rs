@@ -1,0 +1,168 @@
+//! What accuracy costs in time: one scene optimised under a sweep of settings (shading mode,
+//! samples per pixel, denoiser, resolution, shadows, iterations, labelled-view count), recording the
+//! optimisation wall time and the relighting PSNR of each; writes `tradeoff.csv`, `tradeoff.png`
+//! (time against PSNR with the Pareto front) and returns the front.
+
+use std::fmt::Write;
+use std::path::PathBuf;
+
+use anyhow::{Context, Result};
+use serde::Serialize;
+
+use crate::prior::source::PriorSource;
+use crate::render::effects::Effects;
+use crate::render::view::ShadingMode;
+use crate::report::pareto::pareto_front;
+use crate::report::plot::{write_pareto_plot, ScatterPoint};
+
+use super::reconstruct::{prepare, prior_context, run_prepared, views_with_prior, GeometrySource, Prepared, ReconstructOptions};
+
+#[derive(Clone, Debug, Serialize)]
+pub struct TradeoffPoint {
+    pub name: String,
+    /// Legend group (what the point varies).
+    pub group: String,
+    pub mode: ShadingMode,
+    pub spp: u32,
+    pub denoise: bool,
+    pub iterations: usize,
+    /// Training resolution divisor (1 = the dataset's).
+    pub downscale: usize,
+    /// Forced shadows (None = the scene's choice).
+    pub shadows: Option<bool>,
+    pub prior: String,
+    pub labelled_views: usize,
+}
+
+#[derive(Clone, Debug, Serialize)]
+pub struct TradeoffResult {
+    pub point: TradeoffPoint,
+    pub optimise_seconds: f64,
+    pub relight_psnr_scaled: Option<f64>,
+    pub relight_psnr_raw: Option<f64>,
+    pub albedo_psnr_scaled: Option<f64>,
+}
+
+/// The default sweep (≥ 12 points) around a base of `iterations`.
+pub fn default_points(iterations: usize) -> Vec<TradeoffPoint> {
+    let p = |name: &str, group: &str, mode, spp, denoise, it, downscale, shadows, prior: &str, labelled| TradeoffPoint {
+        name: name.into(),
+        group: group.into(),
+        mode,
+        spp,
+        denoise,
+        iterations: it,
+        downscale,
+        shadows,
+        prior: prior.into(),
+        labelled_views: labelled,
+    };
+    use ShadingMode::{MonteCarlo as Mc, SplitSum as Ss};
+    let (i, short, long) = (iterations, (iterations / 3).max(1), iterations * 3);
+    vec![
+        p("split-sum", "split-sum", Ss, 1, false, i, 1, None, "none", 0),
+        p(&format!("split-sum {short} it"), "iterations", Ss, 1, false, short, 1, None, "none", 0),
+        p(&format!("split-sum {long} it"), "iterations", Ss, 1, false, long, 1, None, "none", 0),
+        p("split-sum 128²", "resolution", Ss, 1, false, i, 2, None, "none", 0),
+        p("MC 1 spp", "MC spp", Mc, 1, false, i, 1, None, "none", 0),
+        p("MC 4 spp", "MC spp", Mc, 4, false, i, 1, None, "none", 0),
+        p("MC 16 spp", "MC spp", Mc, 16, false, i, 1, None, "none", 0),
+        p("MC 4 spp + denoiser", "MC + denoiser", Mc, 4, true, i, 1, None, "none", 0),
+        p("MC 4 spp, no shadows", "effects", Mc, 4, false, i, 1, Some(false), "none", 0),
+        p("MC 4 spp 128²", "resolution", Mc, 4, false, i, 2, None, "none", 0),
+        p(&format!("MC 4 spp {long} it"), "iterations", Mc, 4, false, long, 1, None, "none", 0),
+        p("split-sum + idarb-sim, 10 views", "labelled views", Ss, 1, false, i, 1, None, "idarb-sim", 10),
+        p("split-sum + idarb-sim, 100 views", "labelled views", Ss, 1, false, i, 1, None, "idarb-sim", 100),
+    ]
+}
+
+pub fn run(base: &ReconstructOptions, points: &[TradeoffPoint]) -> Result<Vec<TradeoffResult>> {
+    std::fs::create_dir_all(&base.out).with_context(|| format!("cannot create {}", base.out.display()))?;
+    let mut prepared: Vec<(usize, Prepared)> = Vec::new();
+    let mut results = Vec::new();
+    for (k, pt) in points.iter().enumerate() {
+        if !prepared.iter().any(|(d, _)| *d == pt.downscale) {
+            prepared.push((pt.downscale, prepare(&base.scene, base.data.as_ref(), GeometrySource::GroundTruth, base.fit.texture_res, pt.downscale)?));
+        }
+        let prep = &prepared.iter().find(|(d, _)| *d == pt.downscale).expect("prepared above").1;
+        let source: PriorSource = pt.prior.parse()?;
+        let ctx = prior_context(prep, base.fit.seed, base.idarb_weights.clone());
+        let (views, description) = views_with_prior(prep, &source, &ctx, pt.labelled_views)?;
+        let mut o = base.clone();
+        o.out = base.out.join(format!("{k:02}"));
+        o.fit.mode = pt.mode;
+        o.fit.spp = pt.spp;
+        o.fit.denoise = pt.denoise;
+        o.fit.iterations = pt.iterations;
+        o.fit.prior_source = source.tag();
+        o.effects_override = pt.shadows.map(|s| Effects { shadows: s, ..prep.effects.effects });
+        eprintln!("trade-off {}/{}: {}", k + 1, points.len(), pt.name);
+        let report = run_prepared(prep, views, &o, &description)?;
+        let optimise_seconds = report.stage_seconds.iter().find(|s| s.0 == "optimise").map_or(f64::NAN, |s| s.1);
+        let e = &report.evaluation;
+        results.push(TradeoffResult {
+            point: pt.clone(),
+            optimise_seconds,
+            relight_psnr_scaled: e.relight_psnr_scaled,
+            relight_psnr_raw: e.relight_psnr_raw,
+            albedo_psnr_scaled: e.albedo_psnr_scaled,
+        });
+        write_outputs(base, &results)?;
+    }
+    Ok(results)
+}
+
+fn write_outputs(base: &ReconstructOptions, results: &[TradeoffResult]) -> Result<()> {
+    let mut csv = String::from("name,group,mode,spp,denoise,iterations,downscale,shadows,prior,labelled_views,optimise_seconds,relight_psnr_scaled,relight_psnr_raw,albedo_psnr_scaled\n");
+    let o = |v: Option<f64>| v.map_or(String::new(), |v| format!("{v:.3}"));
+    for r in results {
+        let p = &r.point;
+        let _ = writeln!(
+            csv,
+            "\"{}\",{},{:?},{},{},{},{},{},{},{},{:.2},{},{},{}",
+            p.name,
+            p.group,
+            p.mode,
+            p.spp,
+            p.denoise,
+            p.iterations,
+            p.downscale,
+            p.shadows.map_or("auto".into(), |s| s.to_string()),
+            p.prior,
+            p.labelled_views,
+            r.optimise_seconds,
+            o(r.relight_psnr_scaled),
+            o(r.relight_psnr_raw),
+            o(r.albedo_psnr_scaled)
+        );
+    }
+    std::fs::write(base.out.join("tradeoff.csv"), csv)?;
+    let points: Vec<ScatterPoint> = results
+        .iter()
+        .filter_map(|r| Some(ScatterPoint { label: r.point.name.clone(), x: r.optimise_seconds, y: r.relight_psnr_scaled?, group: r.point.group.clone() }))
+        .collect();
+    write_pareto_plot(&points, "optimisation wall time (s)", "relighting PSNR, scaled (dB)", "What accuracy costs in time", true, &base.out.join("tradeoff.png"))
+}
+
+/// The Pareto front (fastest to most accurate) as a Markdown table, with the extra seconds each
+/// extra dB costs between consecutive front points.
+pub fn front_table(results: &[TradeoffResult]) -> String {
+    let pts: Vec<(f64, f64)> = results.iter().map(|r| (r.optimise_seconds, r.relight_psnr_scaled.unwrap_or(f64::NAN))).collect();
+    let front = pareto_front(&pts);
+    let mut s = String::from("| setting | optimisation (s) | relighting PSNR scaled (dB) | extra s per extra dB |\n|---|---:|---:|---:|\n");
+    for (k, &i) in front.iter().enumerate() {
+        let cost = if k == 0 {
+            "–".to_string()
+        } else {
+            let j = front[k - 1];
+            format!("{:.0}", (pts[i].0 - pts[j].0) / (pts[i].1 - pts[j].1))
+        };
+        let _ = writeln!(s, "| {} | {:.0} | {:.2} | {cost} |", results[i].point.name, pts[i].0, pts[i].1);
+    }
+    s
+}
+
+/// The trade-off folder for a scene.
+pub fn default_out(scene: &str) -> PathBuf {
+    PathBuf::from(format!("runs/tradeoff-{scene}"))
+}
