@@ -15,7 +15,11 @@ use clap::Parser;
 use reconstruct::fit::config::FitConfig;
 use reconstruct::fit::fitter::Fit;
 use reconstruct::fit::parameters::Parameters;
-use reconstruct::jobs::reconstruct::{prepare, shading_context, GeometrySource};
+use reconstruct::fit::export::{write_light, write_model};
+use reconstruct::image::io::write_exr;
+use reconstruct::jobs::reconstruct::{prepare, shading_context, GeometrySource, Prepared};
+use reconstruct::jobs::render::ground_truth_mesh;
+use reconstruct::light::CubeMap;
 use reconstruct::material::texture_maps::MaterialTextures;
 use reconstruct::render::view::ShadingMode;
 
@@ -59,6 +63,10 @@ fn main() -> Result<()> {
         prepared.effects.effects.shadows,
         prepared.effects.effects.specular
     );
+    // Both sides start from the same values: ground-truth materials baked into the atlas and the
+    // training probe as the light.
+    let textures = MaterialTextures::bake_from(&ground_truth_mesh(&prepared.spec)?, &prepared.atlas, args.texture_res)?;
+    let light = CubeMap::from_latlong(&prepared.spec.load_train_probe()?.radiance_image(), args.light_res);
     let settings: Vec<(String, ShadingMode, u32)> = vec![
         ("split-sum".into(), ShadingMode::SplitSum, 0),
         ("MC 4 spp".into(), ShadingMode::MonteCarlo, 4),
@@ -68,7 +76,7 @@ fn main() -> Result<()> {
     for (name, mode, spp) in settings {
         let config = FitConfig { mode, spp: spp.max(1), batch: 1, iterations: args.steps + 1, texture_res: args.texture_res, light_res: args.light_res, checkpoint_every: 0, ..FitConfig::default() };
         let ctx = shading_context(&prepared, &config);
-        let mut fit = Fit::new(config.clone(), Parameters::initial(&config)?, vec![view.clone()], ctx)?;
+        let mut fit = Fit::new(config.clone(), Parameters::from_values(&textures, &light)?, vec![view.clone()], ctx)?;
         let mut times = Vec::new();
         for k in 0..=args.steps {
             let t = Instant::now();
@@ -87,7 +95,7 @@ fn main() -> Result<()> {
             rows.push((name, median(times)));
         }
     }
-    let mitsuba = if args.no_mitsuba { None } else { run_mitsuba(&prepared, &args).map_err(|e| println!("Mitsuba: skipped ({e:#})")).ok() };
+    let mitsuba = if args.no_mitsuba { None } else { run_mitsuba(&prepared, &textures, &light, &args).map_err(|e| println!("Mitsuba: skipped ({e:#})")).ok() };
     println!("\n| step (render + backward + Adam), 1 view | reconstruct (s) | Mitsuba 3 llvm_ad_rgb prb (s) |\n|---|---:|---:|");
     for (name, secs) in &rows {
         let m = mitsuba.as_ref().and_then(|m: &serde_json::Value| {
@@ -103,22 +111,22 @@ fn main() -> Result<()> {
     Ok(())
 }
 
-/// Writes the step's inputs (atlas mesh, ground-truth-baked textures, training light, camera,
-/// target) with the `step_inputs` example and runs the Mitsuba script on them.
-fn run_mitsuba(prepared: &reconstruct::jobs::reconstruct::Prepared, args: &Args) -> Result<serde_json::Value> {
-    let _ = (prepared, MaterialTextures::constant(1, glam::Vec3::ZERO, 0.5, 0.0));
+/// Writes the step's inputs (atlas mesh with ground-truth-baked textures, the training light,
+/// camera, target) and runs the Mitsuba script on them.
+fn run_mitsuba(prepared: &Prepared, textures: &MaterialTextures, light: &CubeMap, args: &Args) -> Result<serde_json::Value> {
     let dir = std::env::temp_dir().join(format!("reconstruct-bench-step-{}", std::process::id()));
-    let exe = std::env::current_exe()?;
-    let step_inputs: PathBuf = exe.with_file_name("step_inputs");
-    let status = Command::new(&step_inputs)
-        .args([dir.to_str().context("temp path")?, "--scene", &args.scene, "--tex", &args.texture_res.to_string(), "--light-res", &args.light_res.to_string()])
-        .status()
-        .with_context(|| format!("running {} (build it with `cargo build --release --examples`)", step_inputs.display()))?;
-    anyhow::ensure!(status.success(), "step_inputs failed");
+    write_model(&dir, &prepared.atlas.mesh, textures)?;
+    write_light(&dir, light)?;
+    let view = &prepared.dataset.train[0];
+    let cam = &view.camera;
+    let c2w: Vec<Vec<f32>> = (0..4).map(|r| (0..4).map(|c| cam.c2w.col(c)[r]).collect()).collect();
+    std::fs::write(dir.join("camera.json"), serde_json::json!({"c2w": c2w, "fov_x": cam.fov_x, "width": cam.width, "height": cam.height}).to_string())?;
+    write_exr(&dir.join("target.exr"), &view.load_rgba()?)?;
     let script = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tools/mitsuba/gradient_step.py");
     let out = Command::new("python3").arg(&script).arg(&dir).args(["--json", "--steps", &args.steps.to_string()]).output().context("running python3")?;
-    anyhow::ensure!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    anyhow::ensure!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr).trim());
     let text = String::from_utf8_lossy(&out.stdout);
     let json = text.lines().rev().find(|l| l.trim_start().starts_with('{')).context("no JSON from the Mitsuba script")?;
+    let _ = std::fs::remove_dir_all(&dir);
     Ok(serde_json::from_str(json)?)
 }
