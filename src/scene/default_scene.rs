@@ -121,15 +121,17 @@ pub fn fixture_probe_dir() -> PathBuf {
 }
 
 /// Render the default dataset into `dir` unless a complete copy of this version is there already
-/// (about a minute on 2 cores). An older version's folder is replaced.
+/// (about a minute on 2 cores). An older version's folder is replaced. Safe when several threads
+/// or processes (parallel tests) ask at once: one renders per process, into a private folder that
+/// is renamed into place; a loser of the rename race keeps the winner's copy.
 pub fn ensure_dataset(dir: &Path) -> Result<()> {
+    static LOCK: std::sync::Mutex<()> = std::sync::Mutex::new(());
+    let _guard = LOCK.lock().unwrap_or_else(|e| e.into_inner());
     let stamp = dir.join("COMPLETE");
     let expected = format!("default scene v{VERSION}\n");
-    if std::fs::read_to_string(&stamp).ok().as_deref() == Some(expected.as_str()) {
+    let complete = || std::fs::read_to_string(&stamp).ok().as_deref() == Some(expected.as_str());
+    if complete() {
         return Ok(());
-    }
-    if dir.exists() {
-        std::fs::remove_dir_all(dir).with_context(|| format!("cannot replace the stale default scene in {}", dir.display()))?;
     }
     eprintln!("rendering the embedded default scene into {} (first use only)...", dir.display());
     let probe_dir = fixture_probe_dir();
@@ -140,6 +142,25 @@ pub fn ensure_dataset(dir: &Path) -> Result<()> {
         })
         .collect::<Result<Vec<_>>>()?;
     let settings = RenderSettings { mode: ShadingMode::MonteCarlo, spp: 64, supersample: 2, seed: 7, effects: Effects::ALL };
-    write_nerfactor(&scene(probes), dir, &settings)?;
-    std::fs::write(&stamp, expected).with_context(|| format!("cannot write {}", stamp.display()))
+    let name = dir.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_else(|| "default".into());
+    let partial = dir.with_file_name(format!("{name}.partial-{}", std::process::id()));
+    if partial.exists() {
+        std::fs::remove_dir_all(&partial).with_context(|| format!("cannot clear {}", partial.display()))?;
+    }
+    write_nerfactor(&scene(probes), &partial, &settings)?;
+    std::fs::write(partial.join("COMPLETE"), &expected).with_context(|| format!("cannot write {}", partial.join("COMPLETE").display()))?;
+    if complete() {
+        // Another process finished first.
+        return std::fs::remove_dir_all(&partial).with_context(|| format!("cannot remove {}", partial.display()));
+    }
+    if dir.exists() {
+        std::fs::remove_dir_all(dir).with_context(|| format!("cannot replace the stale default scene in {}", dir.display()))?;
+    }
+    if let Err(e) = std::fs::rename(&partial, dir) {
+        if complete() {
+            return std::fs::remove_dir_all(&partial).with_context(|| format!("cannot remove {}", partial.display()));
+        }
+        return Err(e).with_context(|| format!("cannot move {} to {}", partial.display(), dir.display()));
+    }
+    Ok(())
 }
