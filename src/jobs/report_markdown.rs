@@ -39,6 +39,7 @@ pub fn write_plots(dir: &Path, history: &[IterationRecord]) -> Result<Vec<(Strin
             Series { name: "smoothness".into(), points: smoothed(history, window, |r| r.terms.smoothness) },
             Series { name: "shading".into(), points: smoothed(history, window, |r| r.terms.shading) },
             Series { name: "prior".into(), points: smoothed(history, window, |r| r.terms.prior) },
+            Series { name: "light balance".into(), points: smoothed(history, window, |r| r.terms.light) },
         ]
         .into_iter()
         .filter(|s| s.points.iter().any(|p| p.1 > 0.0))
