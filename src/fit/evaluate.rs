@@ -10,7 +10,6 @@
 //! Maps the dataset lacks (e.g. no albedo in a NeRF-synthetic scene) give `None`, not a failure.
 
 use anyhow::{Context, Result};
-use glam::Vec3;
 use rayon::prelude::*;
 use serde::Serialize;
 
@@ -174,32 +173,31 @@ pub fn evaluate(
     }
     out.val_psnr = mean(&val);
 
-    if let Some(scale) = out.albedo_scale {
-        let scaled_textures = MaterialTextures { kd: scale_colour(&textures.kd, scale).map_channels(3, |v| v.clamp(0.0, 1.0)), ks: textures.ks.clone() };
-        let scaled_materials = texture_materials(&scaled_textures);
-        let relight_settings =
-            RenderSettings { mode: settings.relight_mode, spp: settings.spp, supersample: settings.supersample, seed: settings.seed, effects: settings.effects };
-        let views: Vec<&View> = dataset.test.iter().take(settings.max_test_views.unwrap_or(usize::MAX)).collect();
-        for probe in test_probes {
-            let light = PreparedLight::new(CubeMap::from_latlong(&probe.radiance_image(), PROBE_CUBE_RES));
-            for view in &views {
-                if !view.has_relit(&probe.name) {
-                    continue;
-                }
-                let target = view.load_relit(&probe.name)?;
-                let raw = render_view_with(mesh, bvh, &light, &view.camera, &relight_settings, &materials);
-                let scaled = render_view_with(mesh, bvh, &light, &view.camera, &relight_settings, &scaled_materials);
-                out.relight.push(RelightRecord {
-                    view: view.name.clone(),
-                    probe: probe.name.clone(),
-                    psnr_raw: protocol_psnr(&raw, &target),
-                    psnr_scaled: protocol_psnr(&scaled, &target),
-                });
+    // Relighting: raw always; scaled with the albedo scale when the dataset has albedo.
+    let scaled_textures = out.albedo_scale.map(|scale| MaterialTextures {
+        kd: scale_colour(&textures.kd, scale).map_channels(3, |v| v.clamp(0.0, 1.0)),
+        ks: textures.ks.clone(),
+    });
+    let scaled_materials = scaled_textures.as_ref().map(texture_materials);
+    let relight_settings =
+        RenderSettings { mode: settings.relight_mode, spp: settings.spp, supersample: settings.supersample, seed: settings.seed, effects: settings.effects };
+    let views: Vec<&View> = dataset.test.iter().take(settings.max_test_views.unwrap_or(usize::MAX)).collect();
+    for probe in test_probes {
+        let light = PreparedLight::new(CubeMap::from_latlong(&probe.radiance_image(), PROBE_CUBE_RES));
+        for view in &views {
+            if !view.has_relit(&probe.name) {
+                continue;
             }
+            let target = view.load_relit(&probe.name)?;
+            let raw = render_view_with(mesh, bvh, &light, &view.camera, &relight_settings, &materials);
+            let psnr_scaled = match &scaled_materials {
+                Some(m) => protocol_psnr(&render_view_with(mesh, bvh, &light, &view.camera, &relight_settings, m), &target),
+                None => f64::NAN,
+            };
+            out.relight.push(RelightRecord { view: view.name.clone(), probe: probe.name.clone(), psnr_raw: protocol_psnr(&raw, &target), psnr_scaled });
         }
-        out.relight_psnr_raw = mean(&out.relight.iter().map(|r| r.psnr_raw).collect::<Vec<_>>());
-        out.relight_psnr_scaled = mean(&out.relight.iter().map(|r| r.psnr_scaled).collect::<Vec<_>>());
     }
-    let _ = Vec3::ZERO;
+    out.relight_psnr_raw = mean(&out.relight.iter().map(|r| r.psnr_raw).collect::<Vec<_>>());
+    out.relight_psnr_scaled = mean(&out.relight.iter().map(|r| r.psnr_scaled).collect::<Vec<_>>());
     Ok(Evaluated { metrics: out, val_renders })
 }

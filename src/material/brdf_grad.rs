@@ -84,7 +84,9 @@ mod tests {
         for (wo, wi, r) in [(dir(0.3, 0.0), dir(0.5, 3.0), 0.4), (dir(1.2, 1.0), dir(0.2, 2.0), 0.9), (dir(0.1, 0.0), dir(0.12, 3.1), 0.08)] {
             let (s, _) = lobe_and_roughness_grad(wo, wi, r);
             let want = specular_without_fresnel(wo.as_vec3(), wi.as_vec3(), brdf::alpha_from_roughness(r as f32)) as f64;
-            assert!((s - want).abs() <= 1e-4 * want.max(1e-6), "{s} vs {want}");
+            // f32 (renderer) against f64 (here): at the roughness floor the lobe peaks near 150 and
+            // f32 rounding of n·h moves it by a few 1e-3 relative.
+            assert!((s - want).abs() <= 5e-3 * want.max(1e-6), "{s} vs {want}");
             // And the full specular term: F · S with F from F0.
             let p = SurfaceParams { kd: Vec3::new(0.8, 0.3, 0.1), roughness: r as f32, metallic: 0.4 };
             let w = schlick_weight(wo, wi);
@@ -92,7 +94,7 @@ mod tests {
             let spec = brdf::eval(&p, wo.as_vec3(), wi.as_vec3()).specular;
             for c in 0..3 {
                 let ours = (f[c] * (1.0 - w) + w) * s;
-                assert!((ours - spec[c] as f64).abs() <= 1e-4 * ours.max(1e-6), "channel {c}: {ours} vs {}", spec[c]);
+                assert!((ours - spec[c] as f64).abs() <= 5e-3 * ours.max(1e-6), "channel {c}: {ours} vs {}", spec[c]);
             }
         }
     }
