@@ -21,6 +21,11 @@ import statistics
 import sys
 import time
 
+# Default to Debian's LLVM 19 as make_reference.py does (LLVM 15 crashes Dr.Jit); must precede
+# the drjit import.
+if "DRJIT_LIBLLVM_PATH" not in os.environ and os.path.exists("/usr/lib/x86_64-linux-gnu/libLLVM.so.19.1"):
+    os.environ["DRJIT_LIBLLVM_PATH"] = "/usr/lib/x86_64-linux-gnu/libLLVM.so.19.1"
+
 EMITTER_TO_WORLD = [[0, 0, 1, 0], [1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 0, 1]]  # Blender z-up, as make_reference.py
 
 
