@@ -2,8 +2,9 @@
 //! (the upper bound of what any labeller could give):
 //! - albedo: the dataset stores linear base colour, IDArb predicts sRGB-encoded → encoded here;
 //! - normal: the dataset stores world-space normals, IDArb predicts camera-space ones → rotated
-//!   into the camera frame (OpenGL/NeRF convention: x right, y up, z toward the viewer), encoded
-//!   (n + 1)/2;
+//!   into the camera frame with DESIGN.md §3's axes (+x image-left, +y up, +z toward the camera:
+//!   the OpenGL camera frame with x mirrored), encoded (n + 1)/2. DESIGN.md asks to verify this on
+//!   IDArb output, which we have not had; only the x sign would change;
 //! - roughness, metallic: as stored (a dataset without them gets 0.5 / 0, with the mask kept);
 //! - mask: alpha > 0.5 (what IDArb's preprocessing uses).
 
@@ -25,7 +26,7 @@ pub fn camera_normals(normals: &Image, view: &View) -> Image {
     for i in 0..normals.pixel_count() {
         let n = normals.rgb(i);
         if n != Vec3::ZERO {
-            let c = w2c.transform_vector3(n).normalize_or_zero();
+            let c = w2c.transform_vector3(n).normalize_or_zero() * Vec3::new(-1.0, 1.0, 1.0);
             out.set_rgb(i, (c + Vec3::ONE) * 0.5);
         }
     }
