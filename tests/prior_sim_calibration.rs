@@ -22,7 +22,10 @@ struct Scores {
     roughness_mse: f64,
 }
 
-fn measure(scene: &str, level: f64, views: &[usize]) -> Result<Option<(Scores, Vec<ViewLabels>, Vec<ViewLabels>)>> {
+/// (scores, simulated labels, ground-truth labels).
+type Measured = (Scores, Vec<ViewLabels>, Vec<ViewLabels>);
+
+fn measure(scene: &str, level: f64, views: &[usize]) -> Result<Option<Measured>> {
     let spec = SceneSpec::find(scene)?;
     if !spec.data_dir.exists() && spec.generator.is_none() {
         eprintln!("skipped: {} not found", spec.data_dir.display());

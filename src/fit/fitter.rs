@@ -150,7 +150,7 @@ impl Fit {
             bar.set_position(it as u64);
             if let Some(dir) = checkpoint_dir {
                 let every = self.config.checkpoint_every;
-                if (every > 0 && it % every == 0) || it == total {
+                if (every > 0 && it.is_multiple_of(every)) || it == total {
                     self.save_checkpoint(dir)?;
                 }
             }

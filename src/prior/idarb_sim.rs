@@ -7,6 +7,7 @@
 //!   smooth non-negative bias field (false metal where there is none);
 //! - every field is a function of the 3D surface point (traced on the known geometry), so the same
 //!   point gets the same error in every view, as a multi-view network's errors are correlated.
+//!
 //! LEVEL scales every amplitude (0 = oracle, 1 = IDArb's figures, 2 = twice the error). The
 //! amplitudes below were calibrated on the hotdog's training views (tests/prior_sim_calibration.rs
 //! measures them at LEVEL 1).
@@ -91,6 +92,7 @@ impl SimulatedIdarb {
     }
 }
 
+#[allow(clippy::needless_range_loop)] // channel loops over parallel arrays read clearer indexed
 fn gaussian_blur(img: &Image, mask: &Image, sigma: f32) -> Image {
     if sigma < 0.05 {
         return img.clone();
@@ -131,13 +133,14 @@ fn gaussian_blur(img: &Image, mask: &Image, sigma: f32) -> Image {
 
 /// Degrades one view's ground-truth labels (see the module doc). `view_stream` separates views'
 /// colour-scale errors; `points` are the pixels' surface points.
+#[allow(clippy::needless_range_loop)]
 pub fn degrade(gt: &ViewLabels, points: &[Option<Vec3>], view_stream: u64, level: f32, seed: u64) -> ViewLabels {
     let pts: Vec<Vec3> = points.iter().flatten().copied().collect();
     let (lo, hi) = pts.iter().fold((Vec3::splat(f32::MAX), Vec3::splat(f32::MIN)), |(a, b), p| (a.min(*p), b.max(*p)));
     let size = if pts.is_empty() { 1.0 } else { (hi - lo).length().max(1e-3) };
     let field = |k: u64| SmoothField::new(seed, 1000 + k, size);
     let (residue, nx, ny, nz, rough, metal) = (field(0), field(1), field(2), field(3), field(4), field(5));
-    let mut rng = Sampler::new(seed ^ 0xa1be_d0, view_stream);
+    let mut rng = Sampler::new(seed ^ 0x00a1_bed0, view_stream);
     let view_scale: [f32; 3] = std::array::from_fn(|_| 1.0 + level * ALBEDO_VIEW_SCALE * (2.0 * rng.next_f32() - 1.0) * 1.732);
     let n = gt.mask.pixel_count();
     let mut out = gt.clone();

@@ -128,8 +128,8 @@ fn read_strip(path: &Path, view: &View) -> Result<[Image; 4]> {
         t
     };
     let mut maps = Vec::new();
-    for k in 0..4 {
-        let t = fit_to_view(tile(k), path, view).with_context(|| format!("tile {} ({}) of the strip", k + 1, MAPS[k]))?;
+    for (k, map) in MAPS.iter().enumerate() {
+        let t = fit_to_view(tile(k), path, view).with_context(|| format!("tile {} ({map}) of the strip", k + 1))?;
         maps.push(if k < 2 { rgb(&t) } else { t.channel(0) });
     }
     maps.try_into().map_err(|_| anyhow::anyhow!("four maps expected"))

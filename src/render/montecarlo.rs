@@ -90,6 +90,7 @@ pub fn local_outgoing(s: &Surfel, wo: Vec3) -> (Frame, Vec3) {
 /// Draws one surfel's samples (`spp` of each strategy, balance heuristic) and hands each
 /// contributing one to `visit`; returns the shadow rays traced. The single sampling code path of
 /// the renderer and of the differentiable shader (`montecarlo_op`), so both see the same samples.
+#[allow(clippy::too_many_arguments)] // the renderer's state for one surfel, passed as is
 pub fn draw_samples(
     s: &Surfel,
     wo: Vec3,

@@ -183,7 +183,9 @@ impl Kernel for McShading {
 
     fn backward<T: Real>(&self, x: &[&[T]], _shapes: &[&[usize]], g_out: &[T], grads: &mut [Option<&mut [T]>]) -> Result<()> {
         let (kd, ks, light) = (x[0], x[1], x[2]);
-        let pixel = |p: usize| -> Option<(DVec3, [f64; 3], f64, f64, [f64; 6])> {
+        // (local wo, kd, roughness, metallic, output gradient) of a covered pixel.
+        type PixelData = (DVec3, [f64; 3], f64, f64, [f64; 6]);
+        let pixel = |p: usize| -> Option<PixelData> {
             let wo = self.wo_l[p]?;
             let g: [f64; 6] = std::array::from_fn(|c| g_out[6 * p + c].to_f64());
             Some((DVec3::new(wo[0] as f64, wo[1] as f64, wo[2] as f64), rgb(kd, p), ks[3 * p + 1].to_f64(), ks[3 * p + 2].to_f64(), g))
