@@ -10,7 +10,7 @@ use std::path::PathBuf;
 use anyhow::Result;
 use clap::Parser;
 use reconstruct::fit::config::FitConfig;
-use reconstruct::jobs::ablation::{default_out, run, AblationOptions};
+use reconstruct::jobs::ablation::{default_out, run, write_prior_quality_plot, AblationOptions};
 use reconstruct::jobs::reconstruct::{GeometrySource, ReconstructOptions};
 use reconstruct::prior::source::PriorSource;
 use reconstruct::render::view::ShadingMode;
@@ -40,6 +40,9 @@ struct Args {
     eval_spp: u32,
     #[arg(long)]
     out: Option<PathBuf>,
+    /// Only redraw prior_quality.png from an existing ablation.json in the output folder.
+    #[arg(long)]
+    replot: bool,
 }
 
 fn main() -> Result<()> {
@@ -51,6 +54,16 @@ fn main() -> Result<()> {
     };
     let fit = FitConfig { mode, iterations: a.iterations, ..FitConfig::default() };
     let out = a.out.unwrap_or_else(|| default_out(&a.scene));
+    if a.replot {
+        let path = out.join("ablation.json");
+        let text = std::fs::read_to_string(&path).map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
+        let v: serde_json::Value = serde_json::from_str(&text)?;
+        let sweep: Vec<(f64, Option<f64>, Option<f64>)> = serde_json::from_value(v["sweep"].clone())?;
+        let none = v["rows"].as_array().and_then(|rows| rows.iter().find(|r| r["prior"] == "none")).and_then(|r| r["evaluation"]["relight_psnr_scaled"].as_f64());
+        write_prior_quality_plot(v["scene"].as_str().unwrap_or("scene"), &sweep, none, &out.join("prior_quality.png"))?;
+        println!("wrote {}", out.join("prior_quality.png").display());
+        return Ok(());
+    }
     let base = ReconstructOptions {
         scene: a.scene,
         data: None,

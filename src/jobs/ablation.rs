@@ -124,19 +124,24 @@ pub fn run(opts: &AblationOptions) -> Result<AblationReport> {
     let report = AblationReport { scene: prepared.spec.name.clone(), rows, sweep };
     if !report.sweep.is_empty() {
         let none = report.rows.iter().find(|r| r.prior == "none").and_then(|r| r.evaluation.relight_psnr_scaled);
-        let (lo, hi) = (report.sweep[0].0, report.sweep[report.sweep.len() - 1].0);
-        let mut series = vec![Series { name: "idarb-sim (scaled)".into(), points: report.sweep.iter().filter_map(|(l, s, _)| Some((*l, (*s)?))).collect() }];
-        if let Some(n) = none {
-            series.push(Series { name: "no prior (scaled)".into(), points: vec![(lo, n), (hi, n)] });
-        }
-        write_line_plot(
-            &LinePlot { title: format!("{}: relighting PSNR vs prior error", report.scene), x_label: "simulated error (× IDArb's)".into(), y_label: "relighting PSNR (dB)".into(), log_y: false, series },
-            &base.out.join("prior_quality.png"),
-        )?;
+        write_prior_quality_plot(&report.scene, &report.sweep, none, &base.out.join("prior_quality.png"))?;
     }
     std::fs::write(base.out.join("ablation.json"), serde_json::to_string_pretty(&report)?)?;
     std::fs::write(base.out.join("ablation.md"), report.markdown())?;
     Ok(report)
+}
+
+/// Relighting PSNR (scaled) against the simulated prior error, with the no-prior level as a line.
+pub fn write_prior_quality_plot(scene: &str, sweep: &[(f64, Option<f64>, Option<f64>)], none: Option<f64>, path: &std::path::Path) -> Result<()> {
+    let (lo, hi) = (sweep.first().map_or(0.0, |s| s.0), sweep.last().map_or(1.0, |s| s.0));
+    let mut series = vec![Series { name: "idarb-sim (scaled)".into(), points: sweep.iter().filter_map(|(l, s, _)| Some((*l, (*s)?))).collect() }];
+    if let Some(n) = none {
+        series.push(Series { name: "no prior (scaled)".into(), points: vec![(lo, n), (hi, n)] });
+    }
+    write_line_plot(
+        &LinePlot { title: format!("{scene}: relighting PSNR vs prior error"), x_label: "simulated error (× IDArb's)".into(), y_label: "relighting PSNR (dB)".into(), log_y: false, series },
+        path,
+    )
 }
 
 /// The ablation folder for a scene.

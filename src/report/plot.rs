@@ -107,7 +107,7 @@ pub fn write_line_plot(plot: &LinePlot, path: &Path) -> Result<()> {
             .x_desc(plot.x_label.as_str())
             .y_desc(plot.y_label.as_str())
             .y_label_formatter(&|v| tick_label(*v, log))
-            .x_label_formatter(&|v| format!("{v:.0}"))
+            .x_label_formatter(&|v| if x1 - x0 < 20.0 { format!("{v:.1}") } else { format!("{v:.0}") })
             .label_style((FAMILY, 13))
             .draw()
             .map_err(err)?;
