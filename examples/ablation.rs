@@ -11,7 +11,7 @@ use anyhow::Result;
 use clap::Parser;
 use reconstruct::fit::config::FitConfig;
 use reconstruct::jobs::ablation::{default_out, run, write_prior_quality_plot, AblationOptions};
-use reconstruct::jobs::reconstruct::{GeometrySource, ReconstructOptions};
+use reconstruct::jobs::reconstruct::ReconstructOptions;
 use reconstruct::prior::source::PriorSource;
 use reconstruct::render::view::ShadingMode;
 
@@ -64,19 +64,7 @@ fn main() -> Result<()> {
         println!("wrote {}", out.join("prior_quality.png").display());
         return Ok(());
     }
-    let base = ReconstructOptions {
-        scene: a.scene,
-        data: None,
-        geometry: GeometrySource::GroundTruth,
-        fit,
-        eval_spp: a.eval_spp,
-        out: out.clone(),
-        progress: true,
-        labelled_views: usize::MAX,
-        idarb_weights: None,
-        effects_override: None,
-        eval_test_views: None,
-    };
+    let base = ReconstructOptions::new(&a.scene, fit, a.eval_spp, out.clone());
     let mut sources = vec![PriorSource::None, PriorSource::IdarbSim(1.0), PriorSource::Oracle];
     if a.idarb {
         sources.push(PriorSource::Idarb);

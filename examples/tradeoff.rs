@@ -9,7 +9,7 @@ use std::path::PathBuf;
 use anyhow::Result;
 use clap::Parser;
 use reconstruct::fit::config::FitConfig;
-use reconstruct::jobs::reconstruct::{GeometrySource, ReconstructOptions};
+use reconstruct::jobs::reconstruct::ReconstructOptions;
 use reconstruct::jobs::tradeoff::{default_out, default_points, front_table, run};
 
 #[global_allocator]
@@ -35,17 +35,10 @@ fn main() -> Result<()> {
     let a = Args::parse();
     let out = a.out.unwrap_or_else(|| default_out(&a.scene));
     let base = ReconstructOptions {
-        scene: a.scene,
-        data: None,
-        geometry: GeometrySource::GroundTruth,
-        fit: FitConfig { checkpoint_every: 0, ..FitConfig::default() },
-        eval_spp: a.eval_spp,
-        out: out.clone(),
         progress: false,
         labelled_views: 100,
-        idarb_weights: None,
-        effects_override: None,
         eval_test_views: Some(a.test_views),
+        ..ReconstructOptions::new(&a.scene, FitConfig { checkpoint_every: 0, ..FitConfig::default() }, a.eval_spp, out.clone())
     };
     let results = run(&base, &default_points(a.iterations))?;
     println!("{}", front_table(&results));

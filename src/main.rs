@@ -191,19 +191,7 @@ fn main() -> Result<()> {
         Command::Ablation { scene, iterations, mode, sweep, eval_spp, out } => {
             let mode = match mode { TrainMode::SplitSum => ShadingMode::SplitSum, TrainMode::Mc => ShadingMode::MonteCarlo };
             let out = out.unwrap_or_else(|| ablation::default_out(&scene));
-            let base = ReconstructOptions {
-                scene,
-                data: None,
-                geometry: GeometrySource::GroundTruth,
-                fit: FitConfig { mode, iterations, ..FitConfig::default() },
-                eval_spp,
-                out: out.clone(),
-                progress: true,
-                labelled_views: usize::MAX,
-                idarb_weights: None,
-                effects_override: None,
-                eval_test_views: None,
-            };
+            let base = ReconstructOptions::new(&scene, FitConfig { mode, iterations, ..FitConfig::default() }, eval_spp, out.clone());
             let sources = vec![PriorSource::None, PriorSource::IdarbSim(1.0), PriorSource::Oracle];
             let report = ablation::run(&ablation::AblationOptions { base, sources, sweep })?;
             println!("{}", report.markdown());

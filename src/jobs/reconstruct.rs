@@ -65,6 +65,26 @@ pub struct ReconstructOptions {
     pub eval_test_views: Option<usize>,
 }
 
+impl ReconstructOptions {
+    /// A run of `scene` on its ground-truth mesh with `fit`, into `out`: the scene's own data,
+    /// every training view labelled, all test views relit, the scene's effects, a progress bar.
+    pub fn new(scene: &str, fit: FitConfig, eval_spp: u32, out: PathBuf) -> Self {
+        ReconstructOptions {
+            scene: scene.to_string(),
+            data: None,
+            geometry: GeometrySource::GroundTruth,
+            fit,
+            eval_spp,
+            out,
+            progress: true,
+            labelled_views: usize::MAX,
+            idarb_weights: None,
+            effects_override: None,
+            eval_test_views: None,
+        }
+    }
+}
+
 /// Everything a run needs that does not depend on the fit settings (reused across ablation runs).
 pub struct Prepared {
     pub spec: SceneSpec,
