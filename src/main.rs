@@ -95,6 +95,15 @@ struct ReconstructArgs {
     /// Weight of every prior component (albedo, roughness, metallic).
     #[arg(long)]
     prior_weight: Option<f64>,
+    /// Weight of the albedo component alone (overrides --prior-weight).
+    #[arg(long)]
+    prior_albedo: Option<f64>,
+    /// Weight of the roughness component alone.
+    #[arg(long)]
+    prior_roughness: Option<f64>,
+    /// Weight of the metallic component alone.
+    #[arg(long)]
+    prior_metallic: Option<f64>,
     /// IDArb weights folder for --prior idarb (else the IDARB_WEIGHTS variable).
     #[arg(long)]
     idarb_weights: Option<PathBuf>,
@@ -173,6 +182,9 @@ fn reconstruct(a: ReconstructArgs) -> Result<()> {
     if let Some(v) = a.lr_light { fit.lr_light = v; }
     if let Some(v) = a.light_balance { fit.regularizers.light_white_balance = v; }
     if let Some(v) = a.prior_weight { fit.prior.albedo = v; fit.prior.roughness = v; fit.prior.metallic = v; }
+    if let Some(v) = a.prior_albedo { fit.prior.albedo = v; }
+    if let Some(v) = a.prior_roughness { fit.prior.roughness = v; }
+    if let Some(v) = a.prior_metallic { fit.prior.metallic = v; }
     let prior: PriorSource = a.prior.parse()?;
     let mode_tag = match fit.mode { ShadingMode::SplitSum => "splitsum", ShadingMode::MonteCarlo => "mc" };
     let out = a.out.unwrap_or_else(|| PathBuf::from(format!("runs/{}-{}-{mode_tag}", a.scene, a.prior.replace([':', '/'], "_"))));
