@@ -119,6 +119,8 @@ fn overlap_report(mesh: &Mesh, owner: &[u32], res: usize) -> OverlapReport {
             let y0 = band * BAND;
             let rows = BAND.min(res - y0);
             let mut first = vec![u32::MAX; rows * res];
+            // A texel covered three times is one overlapping texel, not two.
+            let mut counted = vec![false; rows * res];
             let (mut covered, mut overlapping, mut pairs) = (0, 0, Vec::new());
             for &t in list {
                 let [a, b, c] = tris[t as usize];
@@ -138,12 +140,16 @@ fn overlap_report(mesh: &Mesh, owner: &[u32], res: usize) -> OverlapReport {
                         if !inside {
                             continue;
                         }
-                        let slot = &mut first[(y - y0) * res + x];
+                        let idx = (y - y0) * res + x;
+                        let slot = &mut first[idx];
                         if *slot == u32::MAX {
                             *slot = owner[t as usize];
                             covered += 1;
                         } else {
-                            overlapping += 1;
+                            if !counted[idx] {
+                                counted[idx] = true;
+                                overlapping += 1;
+                            }
                             let pair = (*slot, owner[t as usize]);
                             if !pairs.contains(&pair) {
                                 pairs.push(pair);
