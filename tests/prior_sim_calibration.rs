@@ -34,7 +34,7 @@ fn measure(scene: &str, level: f64, views: &[usize]) -> Result<Option<Measured>>
     let dataset = spec.load_dataset()?;
     let mesh = ground_truth_mesh(&spec)?;
     let bvh = Bvh::build(&mesh);
-    let ctx = PriorContext { idarb_weights: None, cache_dir: std::env::temp_dir(), idarb: Default::default(), seed: 7, geometry: Some(Arc::new((mesh, bvh))) };
+    let ctx = PriorContext { idarb_weights: None, cache_dir: std::env::temp_dir(), idarb: Default::default(), seed: 7, geometry: Some((Arc::new(mesh), Arc::new(bvh))) };
     let sim = make_prior(&PriorSource::IdarbSim(level), &ctx)?;
     let labels: Vec<ViewLabels> = sim.labels(&dataset, views)?.into_iter().map(|l| l.expect("every view labelled")).collect();
     let truth: Vec<ViewLabels> = views.iter().map(|&i| view_labels(&dataset.train[i])).collect::<Result<_>>()?;

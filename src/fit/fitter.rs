@@ -67,19 +67,30 @@ impl Fit {
     pub fn batch_for(&self, it: usize) -> Vec<usize> {
         let n = self.views.len();
         let b = self.config.batch.min(n);
+        // A batch spans at most two epochs: shuffle each one once.
+        let mut epochs: Vec<(usize, Vec<usize>)> = Vec::with_capacity(2);
         (0..b)
             .map(|k| {
                 let slot = it * b + k;
                 let (epoch, pos) = (slot / n, slot % n);
-                let mut order: Vec<usize> = (0..n).collect();
-                let mut rng = Sampler::new(self.config.seed, 0x5eed_0000 + epoch as u64);
-                for i in (1..n).rev() {
-                    let j = ((rng.next_f32() * (i + 1) as f32) as usize).min(i);
-                    order.swap(i, j);
+                if !epochs.iter().any(|(e, _)| *e == epoch) {
+                    epochs.push((epoch, self.epoch_order(epoch)));
                 }
-                order[pos]
+                epochs.iter().find(|(e, _)| *e == epoch).map_or(pos, |(_, order)| order[pos])
             })
             .collect()
+    }
+
+    /// The seeded visiting order of epoch `epoch` (Fisher–Yates).
+    fn epoch_order(&self, epoch: usize) -> Vec<usize> {
+        let n = self.views.len();
+        let mut order: Vec<usize> = (0..n).collect();
+        let mut rng = Sampler::new(self.config.seed, 0x5eed_0000 + epoch as u64);
+        for i in (1..n).rev() {
+            let j = ((rng.next_f32() * (i + 1) as f32) as usize).min(i);
+            order.swap(i, j);
+        }
+        order
     }
 
     /// One gradient step; returns its record.
@@ -93,7 +104,7 @@ impl Fit {
             bail!("the loss became non-finite at iteration {it} (terms: {terms:?}); lower the learning rates or check the inputs");
         }
         let grads = loss.backward()?;
-        let lr_factor = LrSchedule { warmup_steps: self.config.warmup_steps, decay_steps: self.config.decay_steps, staircase: false }.factor(it);
+        let lr_factor = self.adam.lr_factor();
         self.adam.step(&grads)?;
         let record = IterationRecord { iteration: it, terms, lr_factor, seconds: t.elapsed().as_secs_f64() };
         self.history.push(record.clone());

@@ -54,11 +54,10 @@ pub fn objective(views: &[&TrainingView], render: &BatchRender, params: &Paramet
     let w = &config.regularizers;
     let alpha = target_rgba.narrow(D::Minus1, 3, 1)?.flatten_all()?;
     if w.kd_smoothness > 0.0 || w.ks_smoothness > 0.0 {
-        let uv: Vec<[f32; 2]> = views.iter().flat_map(|v| v.uv.iter().copied()).collect();
-        let jittered = jitter_uv(&uv, SMOOTHNESS_JITTER, config.seed ^ (iteration as u64).wrapping_mul(0x9e37_79b9));
-        let uv = uv.into();
-        let mut smooth = smoothness_regularizer(params.kd.as_tensor(), &uv, &jittered, &alpha)?.affine(w.kd_smoothness, 0.0)?;
-        smooth = (smooth + smoothness_regularizer(params.ks.as_tensor(), &uv, &jittered, &alpha)?.affine(w.ks_smoothness, 0.0)?)?;
+        let uv = &render.uv;
+        let jittered = jitter_uv(uv, SMOOTHNESS_JITTER, config.seed ^ (iteration as u64).wrapping_mul(0x9e37_79b9));
+        let mut smooth = smoothness_regularizer(params.kd.as_tensor(), uv, &jittered, &alpha)?.affine(w.kd_smoothness, 0.0)?;
+        smooth = (smooth + smoothness_regularizer(params.ks.as_tensor(), uv, &jittered, &alpha)?.affine(w.ks_smoothness, 0.0)?)?;
         terms.smoothness = scalar(&smooth)?;
         total = (total + smooth)?;
     }

@@ -277,7 +277,7 @@ pub fn prior_context(prepared: &Prepared, seed: u64, idarb_weights: Option<PathB
         cache_dir: crate::scene::spec::cache_dir(),
         idarb: IdarbOptions::default(),
         seed,
-        geometry: Some(Arc::new((prepared.atlas.mesh.clone(), Bvh::build(&prepared.atlas.mesh)))),
+        geometry: Some((Arc::new(prepared.atlas.mesh.clone()), prepared.bvh.clone())),
     }
 }
 

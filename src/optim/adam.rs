@@ -156,6 +156,11 @@ impl Adam {
         self.step
     }
 
+    /// The schedule's multiplier for the next step.
+    pub fn lr_factor(&self) -> f64 {
+        self.schedule.factor(self.step)
+    }
+
     /// The learning rate group `g` uses in the next step.
     pub fn current_lr(&self, g: usize) -> f64 {
         self.groups[g].config.lr * self.schedule.factor(self.step)

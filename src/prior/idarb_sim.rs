@@ -71,11 +71,11 @@ impl SmoothField {
 pub struct SimulatedIdarb {
     pub level: f64,
     pub seed: u64,
-    geometry: Option<Arc<(Mesh, Bvh)>>,
+    geometry: Option<(Arc<Mesh>, Arc<Bvh>)>,
 }
 
 impl SimulatedIdarb {
-    pub fn new(level: f64, seed: u64, geometry: Option<Arc<(Mesh, Bvh)>>) -> Self {
+    pub fn new(level: f64, seed: u64, geometry: Option<(Arc<Mesh>, Arc<Bvh>)>) -> Self {
         SimulatedIdarb { level, seed, geometry }
     }
 
@@ -83,7 +83,7 @@ impl SimulatedIdarb {
     /// the image plane (errors then stay smooth but are not consistent across views).
     fn surface_points(&self, view: &View) -> Vec<Option<Vec3>> {
         match &self.geometry {
-            Some(g) => GBuffer::trace(&g.0, &g.1, &view.camera).surfels.iter().map(|s| s.map(|s| s.position)).collect(),
+            Some((mesh, bvh)) => GBuffer::trace(mesh, bvh, &view.camera).surfels.iter().map(|s| s.map(|s| s.position)).collect(),
             None => {
                 let (w, h) = (view.camera.width, view.camera.height);
                 (0..w * h).map(|i| Some(Vec3::new((i % w) as f32 / w as f32, (i / w) as f32 / h as f32, 0.0))).collect()

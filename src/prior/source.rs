@@ -87,7 +87,7 @@ pub struct PriorContext {
     pub idarb: IdarbOptions,
     pub seed: u64,
     /// The known geometry (surface points make simulated errors consistent across views).
-    pub geometry: Option<Arc<(Mesh, Bvh)>>,
+    pub geometry: Option<(Arc<Mesh>, Arc<Bvh>)>,
 }
 
 struct NoPrior;
