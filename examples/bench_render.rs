@@ -61,15 +61,15 @@ fn main() -> anyhow::Result<()> {
     let g_ms = time_ms(9, || GBuffer::trace(&mesh, &bvh, &cam));
     println!("| G-buffer (primary rays) | {g_ms:.2} | {:.2} |", (256.0 * 256.0) / g_ms / 1e3);
     let (ss, lut) = light.split_sum();
-    let s_ms = time_ms(9, || splitsum::shade(&gbuf, &params, ss, lut, Effects::ALL));
+    let s_ms = time_ms(9, || splitsum::shade(&gbuf, &params, ss, lut, Effects::DIRECT));
     println!("| split-sum shading | {s_ms:.2} | - |");
     for spp in [1u32, 4, 16] {
         for shadows in [false, true] {
-            let settings = McSettings { spp, seed: 1, effects: Effects { shadows, specular: true }, ray_epsilon: ray_epsilon(&mesh) };
+            let settings = McSettings { spp, seed: 1, effects: Effects { shadows, specular: true, indirect_bounces: 0 }, ray_epsilon: ray_epsilon(&mesh) };
             let runs = if spp == 16 { 3 } else { 5 };
             let mut rays = 0;
             let ms = time_ms(runs, || {
-                let b = montecarlo::shade(&gbuf, &params, light.sampler(), &bvh, &settings, 0);
+                let b = montecarlo::shade(&gbuf, &params, light.sampler(), &montecarlo::TraceScene { mesh: &mesh, bvh: &bvh, materials: &mesh }, &settings, 0);
                 rays = b.shadow_rays;
             });
             let mrays = if shadows { format!("{:.2}", rays as f64 / ms / 1e3) } else { "-".into() };

@@ -10,7 +10,7 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Context, Result};
 use clap::Parser;
-use reconstruct::fit::evaluate::{texture_materials, PROBE_CUBE_RES};
+use reconstruct::fit::evaluate::PROBE_CUBE_RES;
 use reconstruct::fit::export::write_render;
 use reconstruct::geometry::bvh::Bvh;
 use reconstruct::geometry::obj::load_obj;
@@ -81,13 +81,13 @@ fn main() -> Result<()> {
     let out = args.out.clone().unwrap_or_else(|| args.run.join("relight"));
     let bvh = Bvh::build(&mesh);
     let settings = RenderSettings { mode: ShadingMode::MonteCarlo, spp: args.spp, supersample: args.supersample, seed: 0, effects: report.effects.effects };
-    let materials = texture_materials(&textures);
+    let materials = &textures;
     let mut tiles = Vec::new();
     for path in &args.probes {
         let probe = Probe::load(path, args.strength)?;
         let light = PreparedLight::new(CubeMap::from_latlong(&probe.radiance_image(), PROBE_CUBE_RES));
         for view in &views {
-            let img = render_view_with(&mesh, &bvh, &light, &view.camera, &settings, &materials);
+            let img = render_view_with(&mesh, &bvh, &light, &view.camera, &settings, materials);
             let stem = format!("{}_{}", view.name, probe.name);
             write_render(&out, &stem, &img)?;
             println!("wrote {}", out.join(format!("{stem}.png")).display());

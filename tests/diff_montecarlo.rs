@@ -2,6 +2,8 @@
 //! and every gradient against central finite differences (f64) with the samples held fixed,
 //! including the hard cases of the brief: roughness at the floor, grazing views, metallic 0 and 1,
 //! black albedo and a 1e5-radiance texel in the light. f32 gradients stay finite there too.
+//! With interreflection the same holds: bounce samples carry detached radiance, the BRDF they
+//! meet at the pixel is differentiated.
 
 use candle_core::{Device, Tensor, Var};
 use glam::{Quat, Vec2, Vec3};
@@ -14,7 +16,7 @@ use reconstruct::material::{BaseColor, PartMaterial, SurfaceParams};
 use reconstruct::optim::gradcheck::{check_gradient_with, GradCheckOptions};
 use reconstruct::render::effects::Effects;
 use reconstruct::render::gbuffer::GBuffer;
-use reconstruct::render::montecarlo::{shade, McSettings};
+use reconstruct::render::montecarlo::{shade, McSettings, TraceScene};
 use reconstruct::render::montecarlo_op::{shade_mc, McPixel, McShading};
 use reconstruct::rng::Sampler;
 use reconstruct::scene::Camera;
@@ -40,8 +42,8 @@ fn random_light(res: usize, rng: &mut Sampler) -> CubeMap {
     m
 }
 
-fn settings(shadows: bool) -> McSettings {
-    McSettings { spp: 3, seed: 5, effects: Effects { shadows, specular: true }, ray_epsilon: 1e-4 }
+fn settings(shadows: bool, indirect_bounces: u32) -> McSettings {
+    McSettings { spp: 3, seed: 5, effects: Effects { shadows, specular: true, indirect_bounces }, ray_epsilon: 1e-4 }
 }
 
 fn pixels(g: &GBuffer) -> Vec<Option<McPixel>> {
@@ -64,19 +66,20 @@ fn light_tensor(m: &CubeMap) -> Tensor {
 }
 
 #[test]
-fn forward_matches_the_renderer_with_and_without_shadows() -> anyhow::Result<()> {
-    let (_, bvh, g) = scene();
+fn forward_matches_the_renderer_with_and_without_shadows_and_bounces() -> anyhow::Result<()> {
+    let (mesh, bvh, g) = scene();
+    let trace = TraceScene { mesh: &mesh, bvh: &bvh, materials: &mesh };
     let mut rng = Sampler::from_seed(3);
     let light = random_light(4, &mut rng);
     let n = g.surfels.len();
     let (kd, ks) = materials(n, |i| [0.2 + 0.7 * ((i * 7) % 10) as f32 / 10.0, 0.5, 0.3], |i| 0.08 + 0.9 * ((i * 3) % 10) as f32 / 10.0, |i| (i % 3) as f32 / 2.0);
-    for shadows in [false, true] {
-        let s = settings(shadows);
-        let op = McShading::prepare(&pixels(&g), &kd, &ks, &light, &bvh, &s);
+    for (shadows, bounces) in [(false, 0), (true, 0), (true, 2)] {
+        let s = settings(shadows, bounces);
+        let op = McShading::prepare(&pixels(&g), &kd, &ks, &light, &trace, &s);
         let out = shade_mc(&op, &to_tensor(&kd), &to_tensor(&ks), &light_tensor(&light))?.to_vec2::<f64>()?;
         let params: Vec<Option<SurfaceParams>> =
             g.surfels.iter().enumerate().map(|(i, s)| s.map(|_| SurfaceParams { kd: Vec3::from_array(kd[i]), roughness: ks[i][1], metallic: ks[i][2] })).collect();
-        let reference = shade(&g, &params, &LightSampler::new(&light), &bvh, &s, 0);
+        let reference = shade(&g, &params, &LightSampler::new(&light), &trace, &s, 0);
         assert_eq!(op.shadow_rays, reference.shadow_rays);
         let mut covered = 0;
         for (i, row) in out.iter().enumerate() {
@@ -94,9 +97,10 @@ fn forward_matches_the_renderer_with_and_without_shadows() -> anyhow::Result<()>
 }
 
 /// FD check of kd, ks and light for one material/light setup (samples fixed at these values).
-fn check(kd: Vec<[f32; 3]>, ks: Vec<[f32; 3]>, light: CubeMap, shadows: bool, tol: f64) -> anyhow::Result<()> {
-    let (_, bvh, g) = scene();
-    let op = McShading::prepare(&pixels(&g), &kd, &ks, &light, &bvh, &settings(shadows));
+fn check(kd: Vec<[f32; 3]>, ks: Vec<[f32; 3]>, light: CubeMap, s: McSettings, tol: f64) -> anyhow::Result<()> {
+    let (mesh, bvh, g) = scene();
+    let trace = TraceScene { mesh: &mesh, bvh: &bvh, materials: &mesh };
+    let op = McShading::prepare(&pixels(&g), &kd, &ks, &light, &trace, &s);
     let n = g.surfels.len();
     let weights = Tensor::rand(0.5f64, 1.5, (n, 6), &Device::Cpu)?;
     let opts = GradCheckOptions { eps: 1e-6, tol, max_elements: 400, seed: 3 };
@@ -122,7 +126,8 @@ fn gradients_match_finite_differences_on_random_inputs() -> anyhow::Result<()> {
     let light = random_light(4, &mut rng);
     let n = 100;
     let (kd, ks) = materials(n, |i| [0.1 + 0.8 * ((i * 7) % 10) as f32 / 10.0, 0.4, 0.6], |i| 0.15 + 0.8 * ((i * 3) % 10) as f32 / 10.0, |i| 0.1 + 0.8 * ((i * 5) % 10) as f32 / 10.0);
-    check(kd, ks, light, true, 1e-2)
+    check(kd.clone(), ks.clone(), light.clone(), settings(true, 0), 1e-2)?;
+    check(kd, ks, light, settings(true, 1), 1e-2)
 }
 
 #[test]
@@ -134,9 +139,11 @@ fn gradients_hold_at_the_hard_cases() -> anyhow::Result<()> {
     // ball, present in every case. (Exactly at the floor the function has a kink: the operator
     // returns the slope from above, which a central difference halves, so it is not probed.)
     let (kd, ks) = materials(n, |i| if i % 2 == 0 { [0.0; 3] } else { [0.9, 0.5, 0.2] }, |i| [0.0801, 0.05, 0.3][i % 3], |i| (i % 2) as f32);
-    check(kd.clone(), ks.clone(), random_light(4, &mut rng), true, 1e-2)?;
-    // A 1e5-radiance texel (a sun) in the light.
+    check(kd.clone(), ks.clone(), random_light(4, &mut rng), settings(true, 0), 1e-2)?;
+    // A 1e5-radiance texel (a sun) in the light, direct and with a bounce (the sun then also
+    // arrives reflected off the disc, as a detached constant).
     let mut sun = random_light(4, &mut rng);
     sun.data[17] = Vec3::splat(1e5);
-    check(kd, ks, sun, true, 1e-2)
+    check(kd.clone(), ks.clone(), sun.clone(), settings(true, 0), 1e-2)?;
+    check(kd, ks, sun, settings(true, 1), 1e-2)
 }

@@ -85,7 +85,7 @@ fn check(op: &SplitSumShading, kd: Tensor, ks: Tensor, light: Tensor, what: &str
 
 fn op_for(res: usize, geometry: &[Option<(Vec3, Vec3)>]) -> SplitSumShading {
     let light = Arc::new(LightMaps::new(res, PrefilterOptions::default()));
-    SplitSumShading::new(geometry, light, lut(), Effects::ALL)
+    SplitSumShading::new(geometry, light, lut(), Effects::DIRECT)
 }
 
 #[test]
@@ -124,7 +124,7 @@ fn forward_equals_the_split_sum_renderer() {
         let base = random_light(res, &mut rng);
         let opts = PrefilterOptions::default();
         let lut = lut();
-        for effects in [Effects::ALL, Effects { shadows: false, specular: false }] {
+        for effects in [Effects::DIRECT, Effects { shadows: false, specular: false, indirect_bounces: 0 }] {
             let reference = splitsum::shade(&gbuf, &params, &SplitSumLight::with_options(&base, opts), &lut, effects);
             let op = SplitSumShading::from_gbuffer(&gbuf, Arc::new(LightMaps::new(res, opts)), lut.clone(), effects);
             let kd: Vec<f32> = params.iter().flat_map(|p| p.expect("params").kd.to_array()).collect();
@@ -289,7 +289,7 @@ fn matrix_free_light_agrees_with_the_stored_stencils() {
         let (kd, ks) = materials(n, &mut rng, |r| [r.next_f32() as f64, r.next_f32() as f64, r.next_f32() as f64], any_roughness, |r, _| r.next_f32() as f64);
         let light = light_tensor(&random_light(res, &mut rng));
         let grads = |maps: LightMaps| -> Vec<Vec<f64>> {
-            let op = SplitSumShading::new(&geometry, Arc::new(maps), lut(), Effects::ALL);
+            let op = SplitSumShading::new(&geometry, Arc::new(maps), lut(), Effects::DIRECT);
             let vars: Vec<Var> = [&kd, &ks, &light].iter().map(|t| Var::from_tensor(t).expect("var")).collect();
             let out = shade_splitsum(&op, vars[0].as_tensor(), vars[1].as_tensor(), vars[2].as_tensor()).expect("forward");
             let g = out.sqr().and_then(|t| t.sum_all()).and_then(|t| t.backward()).expect("backward");
@@ -314,7 +314,7 @@ fn measure() {
         let opts = PrefilterOptions::default();
         let light = Arc::new(if stored { LightMaps::new(res, opts) } else { LightMaps::matrix_free(res, opts) });
         let build = t0.elapsed().as_secs_f64();
-        let op = SplitSumShading::new(&random_geometry(n, 0, &mut rng), light.clone(), lut(), Effects::ALL);
+        let op = SplitSumShading::new(&random_geometry(n, 0, &mut rng), light.clone(), lut(), Effects::DIRECT);
         let (kd, ks) = materials(n, &mut rng, |r| [r.next_f32() as f64; 3], any_roughness, |r, _| r.next_f32() as f64);
         let (kd, ks) = (kd.to_dtype(DType::F32).expect("f32"), ks.to_dtype(DType::F32).expect("f32"));
         let kd = Var::from_tensor(&kd).expect("var");

@@ -12,7 +12,6 @@ use anyhow::Result;
 use glam::{Quat, Vec3};
 use reconstruct::fit::batch_render::ShadingContext;
 use reconstruct::fit::config::FitConfig;
-use reconstruct::fit::evaluate::texture_materials;
 use reconstruct::fit::fitter::Fit;
 use reconstruct::fit::parameters::Parameters;
 use reconstruct::fit::training_view::TrainingView;
@@ -74,14 +73,14 @@ fn scene(sun: f32) -> Result<Scene> {
     let bvh = Arc::new(Bvh::build(&atlas.mesh));
     let light = sky(sun);
     let prepared = PreparedLight::new(light.clone());
-    let settings = RenderSettings { mode: ShadingMode::SplitSum, spp: 1, supersample: 1, seed: 0, effects: Effects { shadows: false, specular: true } };
+    let settings = RenderSettings { mode: ShadingMode::SplitSum, spp: 1, supersample: 1, seed: 0, effects: Effects { shadows: false, specular: true, indirect_bounces: 0 } };
     let mut views = Vec::new();
     for i in 0..12 {
         let az = i as f32 * std::f32::consts::TAU / 12.0;
         let el: f32 = if i % 2 == 0 { 0.5 } else { -0.2 };
         let eye = 3.0 * Vec3::new(el.cos() * az.cos(), el.cos() * az.sin(), el.sin());
         let camera = Camera::look_at(eye, Vec3::ZERO, Vec3::Z, 0.7, PIXELS, PIXELS);
-        let target = render_view_with(&atlas.mesh, &bvh, &prepared, &camera, &settings, &texture_materials(&truth));
+        let target = render_view_with(&atlas.mesh, &bvh, &prepared, &camera, &settings, &truth);
         views.push(TrainingView::from_image(&format!("train_{i:03}"), &camera, i, &target, &atlas.mesh, &bvh)?);
     }
     Ok(Scene { atlas, bvh, truth, light, views })
@@ -90,11 +89,12 @@ fn scene(sun: f32) -> Result<Scene> {
 fn context(s: &Scene, config: &FitConfig) -> ShadingContext {
     ShadingContext {
         mode: config.mode,
-        effects: Effects { shadows: false, specular: true },
+        effects: Effects { shadows: false, specular: true, indirect_bounces: 0 },
         spp: config.spp,
         denoise: false,
         seed: config.seed,
         ray_epsilon: ray_epsilon(&s.atlas.mesh),
+        mesh: Arc::new(s.atlas.mesh.clone()),
         bvh: s.bvh.clone(),
         light_maps: Arc::new(LightMaps::matrix_free(config.light_res, PrefilterOptions::default())),
         lut: Arc::new(BrdfLut::compute(32, 256)),
@@ -227,10 +227,10 @@ fn exported_model_reloads_and_renders_the_same() -> Result<()> {
     let textures = MaterialTextures::load(&dir)?;
     assert!(dir.join("model.gltf").is_file() && dir.join("roughness.png").is_file());
     let light = PreparedLight::new(s.light.clone());
-    let settings = RenderSettings { mode: ShadingMode::SplitSum, spp: 1, supersample: 1, seed: 0, effects: Effects { shadows: false, specular: true } };
+    let settings = RenderSettings { mode: ShadingMode::SplitSum, spp: 1, supersample: 1, seed: 0, effects: Effects { shadows: false, specular: true, indirect_bounces: 0 } };
     let camera = &s.views[0].camera;
-    let a = render_view_with(&s.atlas.mesh, &s.bvh, &light, camera, &settings, &texture_materials(&s.truth));
-    let b = render_view_with(&mesh, &Bvh::build(&mesh), &light, camera, &settings, &texture_materials(&textures));
+    let a = render_view_with(&s.atlas.mesh, &s.bvh, &light, camera, &settings, &s.truth);
+    let b = render_view_with(&mesh, &Bvh::build(&mesh), &light, camera, &settings, &textures);
     let psnr = reconstruct::eval::metrics::psnr(&a, &b, None);
     // 8-bit textures and OBJ decimals are the only differences.
     assert!(psnr > 40.0, "reloaded model renders at {psnr:.1} dB");

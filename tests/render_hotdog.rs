@@ -61,7 +61,7 @@ fn half_turn(img: &Image) -> Image {
 fn ground_truth_render_matches_dataset_per_view() {
     let Some(h) = hotdog() else { return };
     let light = PreparedLight::new(CubeMap::from_latlong(&h.probe, 64));
-    let settings = RenderSettings { mode: ShadingMode::MonteCarlo, spp: 32, supersample: 2, seed: 1, effects: Effects::ALL };
+    let settings = RenderSettings { mode: ShadingMode::MonteCarlo, spp: 32, supersample: 2, seed: 1, effects: Effects::DIRECT };
     let views: Vec<_> = h.dataset.train.iter().step_by(25).chain(h.dataset.val.iter().take(2)).collect();
     let mut scores = Vec::new();
     for view in views {
@@ -84,7 +84,7 @@ fn ground_truth_render_matches_dataset_per_view() {
 #[test]
 fn probe_orientation_agrees_with_relit_ground_truth() {
     let Some(h) = hotdog() else { return };
-    let settings = RenderSettings { mode: ShadingMode::MonteCarlo, spp: 16, supersample: 1, seed: 1, effects: Effects::ALL };
+    let settings = RenderSettings { mode: ShadingMode::MonteCarlo, spp: 16, supersample: 1, seed: 1, effects: Effects::DIRECT };
     let right = PreparedLight::new(CubeMap::from_latlong(&h.probe, 32));
     let wrong = PreparedLight::new(CubeMap::from_latlong(&half_turn(&h.probe), 32));
     for view in [&h.dataset.train[0], &h.dataset.train[50]] {

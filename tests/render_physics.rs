@@ -12,7 +12,7 @@ use reconstruct::material::SurfaceParams;
 use reconstruct::math::Frame;
 use reconstruct::render::effects::Effects;
 use reconstruct::render::gbuffer::Surfel;
-use reconstruct::render::montecarlo::{shade_point, McSettings};
+use reconstruct::render::montecarlo::{shade_point, McSettings, TraceScene};
 use reconstruct::render::splitsum;
 use reconstruct::render::view::PreparedLight;
 use reconstruct::rng::Sampler;
@@ -70,13 +70,13 @@ fn monte_carlo_converges_to_brute_force_integral() {
     let light = LightSampler::new(&cube);
     let mesh = far_triangle();
     let bvh = Bvh::build(&mesh);
-    let settings = McSettings { spp: 8192, seed: 3, effects: Effects::ALL, ray_epsilon: 1e-4 };
+    let settings = McSettings { spp: 8192, seed: 3, effects: Effects::DIRECT, ray_epsilon: 1e-4 };
     for (k, (rough, metal)) in [(0.3f32, 0.0f32), (0.6, 0.0), (0.4, 1.0)].into_iter().enumerate() {
         let p = SurfaceParams { kd: Vec3::new(0.7, 0.5, 0.3), roughness: rough, metallic: metal };
         let n = Vec3::new(0.2, -0.1, 1.0).normalize();
         let wo = Vec3::new(-0.5, 0.3, 0.8).normalize();
         let mut rng = Sampler::new(11, k as u64);
-        let (d, s, _) = shade_point(&surfel(n), wo, &p, &light, &bvh, &settings, &mut rng);
+        let (d, s, _) = shade_point(&surfel(n), wo, &p, &light, &TraceScene { mesh: &mesh, bvh: &bvh, materials: &mesh }, &settings, &mut rng);
         let mc = p.kd * (1.0 - p.metallic) * d + s;
         let reference = brute_force(n, wo, &p, &light);
         let rel = ((mc - reference).abs() / reference.max(Vec3::splat(1e-3))).max_element();
@@ -93,14 +93,14 @@ fn white_furnace_both_modes() {
     let mesh = far_triangle();
     let bvh = Bvh::build(&mesh);
     let p = SurfaceParams { kd: Vec3::ONE, roughness: 0.5, metallic: 0.0 };
-    let diffuse_only = Effects { shadows: false, specular: false };
+    let diffuse_only = Effects { shadows: false, specular: false, indirect_bounces: 0 };
     let n = Vec3::new(0.3, 0.1, 1.0).normalize();
     let wo = Vec3::new(0.1, 0.4, 0.9).normalize();
     let (ss, lut) = prepared.split_sum();
     let (d, s) = splitsum::shade_point(n, wo, &p, ss, lut, diffuse_only);
     assert!(((d + s) - Vec3::ONE).abs().max_element() < 0.01, "split-sum furnace {:?}", d + s);
     let settings = McSettings { spp: 1024, seed: 1, effects: diffuse_only, ray_epsilon: 1e-4 };
-    let (d, s, rays) = shade_point(&surfel(n), wo, &p, prepared.sampler(), &bvh, &settings, &mut Sampler::new(0, 0));
+    let (d, s, rays) = shade_point(&surfel(n), wo, &p, prepared.sampler(), &TraceScene { mesh: &mesh, bvh: &bvh, materials: &mesh }, &settings, &mut Sampler::new(0, 0));
     assert!(((d + s) - Vec3::ONE).abs().max_element() < 0.01, "MC furnace {:?}", d + s);
     assert_eq!(rays, 0, "shadows off must trace no shadow rays");
 }
@@ -113,13 +113,13 @@ fn split_sum_matches_monte_carlo_under_constant_light_with_specular() {
     let mesh = far_triangle();
     let bvh = Bvh::build(&mesh);
     let (ss, lut) = prepared.split_sum();
-    let settings = McSettings { spp: 4096, seed: 5, effects: Effects { shadows: false, specular: true }, ray_epsilon: 1e-4 };
+    let settings = McSettings { spp: 4096, seed: 5, effects: Effects { shadows: false, specular: true, indirect_bounces: 0 }, ray_epsilon: 1e-4 };
     for (rough, metal, nov) in [(0.1f32, 0.0f32, 0.9f32), (0.5, 0.0, 0.5), (0.3, 1.0, 0.7), (1.0, 0.5, 0.2)] {
         let p = SurfaceParams { kd: Vec3::new(0.6, 0.4, 0.2), roughness: rough, metallic: metal };
         let n = Vec3::Z;
         let wo = Vec3::new((1.0 - nov * nov).sqrt(), 0.0, nov);
         let (d, s) = splitsum::shade_point(n, wo, &p, ss, lut, settings.effects);
-        let (md, msp, _) = shade_point(&surfel(n), wo, &p, prepared.sampler(), &bvh, &settings, &mut Sampler::new(2, 0));
+        let (md, msp, _) = shade_point(&surfel(n), wo, &p, prepared.sampler(), &TraceScene { mesh: &mesh, bvh: &bvh, materials: &mesh }, &settings, &mut Sampler::new(2, 0));
         let mc = p.kd * (1.0 - metal) * md + msp;
         let rel = (((d + s) - mc).abs() / mc.max(Vec3::splat(1e-3))).max_element();
         println!("r {rough} m {metal} n·v {nov}: split-sum {:?} MC {mc:?} rel {rel:.4}", d + s);
@@ -145,10 +145,10 @@ fn hard_cases_stay_finite() {
                 let p = SurfaceParams { kd, roughness: rough, metallic: metal };
                 for n in normals {
                     for wo in wos {
-                        let (d, s) = splitsum::shade_point(n, wo, &p, ss, lut, Effects::ALL);
+                        let (d, s) = splitsum::shade_point(n, wo, &p, ss, lut, Effects::DIRECT);
                         assert!(d.is_finite() && s.is_finite(), "split-sum r {rough} n {n:?} wo {wo:?}");
-                        let settings = McSettings { spp: 8, seed: 1, effects: Effects::ALL, ray_epsilon: 1e-4 };
-                        let (d, s, _) = shade_point(&surfel(n), wo, &p, prepared.sampler(), &bvh, &settings, &mut Sampler::new(1, 2));
+                        let settings = McSettings { spp: 8, seed: 1, effects: Effects::DIRECT, ray_epsilon: 1e-4 };
+                        let (d, s, _) = shade_point(&surfel(n), wo, &p, prepared.sampler(), &TraceScene { mesh: &mesh, bvh: &bvh, materials: &mesh }, &settings, &mut Sampler::new(1, 2));
                         assert!(d.is_finite() && s.is_finite(), "MC r {rough} n {n:?} wo {wo:?}: {d:?} {s:?}");
                     }
                 }

@@ -63,9 +63,9 @@ fn auto_effects_follow_the_scene() {
     let glossy = sphere_on_slab(0.2);
     let choice = choose(switches, &glossy, &Bvh::build(&glossy), &[], true);
     assert!(choice.effects.specular);
-    let forced = EffectSwitches { shadows: Switch::Off, specular: Switch::On };
+    let forced = EffectSwitches { shadows: Switch::Off, specular: Switch::On, ..Default::default() };
     let choice = choose(forced, &occluding, &Bvh::build(&occluding), &[], true);
-    assert_eq!(choice.effects, Effects { shadows: false, specular: true });
+    assert_eq!(choice.effects, Effects { shadows: false, specular: true, indirect_bounces: 0 });
 }
 
 #[test]
@@ -80,7 +80,7 @@ fn shadows_darken_the_occluded_slab() {
     let light = PreparedLight::new(CubeMap::from_latlong(&sky, 32));
     // Seen from the side-above, so the shadow under the sphere is visible.
     let cam = Camera::look_at(Vec3::new(2.5, -2.5, 2.5), Vec3::ZERO, Vec3::Z, 0.9, 48, 48);
-    let settings = |shadows| RenderSettings { mode: ShadingMode::MonteCarlo, spp: 16, supersample: 1, seed: 1, effects: Effects { shadows, specular: false } };
+    let settings = |shadows| RenderSettings { mode: ShadingMode::MonteCarlo, spp: 16, supersample: 1, seed: 1, effects: Effects { shadows, specular: false, indirect_bounces: 0 } };
     let with = render_view(&mesh, &bvh, &light, &cam, &settings(true));
     let without = render_view(&mesh, &bvh, &light, &cam, &settings(false));
     // The light from straight above puts a shadow under the sphere: total brightness drops.
@@ -107,7 +107,7 @@ fn degenerate_geometry_and_extreme_materials_render_finite() {
     let light = PreparedLight::new(CubeMap::from_latlong(&probe, 32));
     for cam in cameras() {
         for mode in [ShadingMode::SplitSum, ShadingMode::MonteCarlo] {
-            let settings = RenderSettings { mode, spp: 4, supersample: 1, seed: 2, effects: Effects::ALL };
+            let settings = RenderSettings { mode, spp: 4, supersample: 1, seed: 2, effects: Effects::DIRECT };
             let img = render_view(&mesh, &bvh, &light, &cam, &settings);
             assert!(img.data.iter().all(|v| v.is_finite()), "{mode:?} produced NaN/Inf");
         }
@@ -120,7 +120,7 @@ fn renders_are_reproducible_for_a_seed() {
     let bvh = Bvh::build(&mesh);
     let light = PreparedLight::new(CubeMap::from_latlong(&Image::filled(32, 16, &[0.5, 0.4, 0.3]), 16));
     let cam = &cameras()[0];
-    let s = RenderSettings { mode: ShadingMode::MonteCarlo, spp: 2, supersample: 1, seed: 9, effects: Effects::ALL };
+    let s = RenderSettings { mode: ShadingMode::MonteCarlo, spp: 2, supersample: 1, seed: 9, effects: Effects::DIRECT };
     let a = render_view(&mesh, &bvh, &light, cam, &s);
     let b = render_view(&mesh, &bvh, &light, cam, &s);
     let c = render_view(&mesh, &bvh, &light, cam, &RenderSettings { seed: 10, ..s });

@@ -9,11 +9,12 @@ use anyhow::Result;
 use candle_core::{Tensor, D};
 
 use crate::geometry::bvh::Bvh;
+use crate::geometry::Mesh;
 use crate::light::brdf_lut::BrdfLut;
 use crate::optim::texture::sample_bilinear;
 use crate::render::denoise::{BilateralParams, CrossBilateral};
 use crate::render::effects::Effects;
-use crate::render::montecarlo::McSettings;
+use crate::render::montecarlo::{McSettings, TraceScene};
 use crate::render::montecarlo_op::{shade_mc, McPixel, McShading};
 use crate::render::splitsum_op::{shade_splitsum, LightMaps, SplitSumShading};
 use crate::render::view::ShadingMode;
@@ -30,6 +31,8 @@ pub struct ShadingContext {
     pub denoise: bool,
     pub seed: u64,
     pub ray_epsilon: f32,
+    /// The mesh the textures live on (bounce rays land on it) and its BVH.
+    pub mesh: Arc<Mesh>,
     pub bvh: Arc<Bvh>,
     pub light_maps: Arc<LightMaps>,
     pub lut: Arc<BrdfLut>,
@@ -107,7 +110,14 @@ fn shade_batch_mc(views: &[&TrainingView], offsets: &[usize], kd: &Tensor, ks: &
         ray_epsilon: ctx.ray_epsilon,
     };
     let light = params.light_cube()?;
-    let op = McShading::prepare(&pixels, &to_rows(kd)?, &to_rows(ks)?, &light, &ctx.bvh, &settings);
+    // Bounces read the current textures where they land; without interreflection nothing is read.
+    let textures = if ctx.effects.interreflection() { Some(params.textures()?) } else { None };
+    let materials: &dyn crate::material::MaterialField = match &textures {
+        Some(t) => t,
+        None => &*ctx.mesh,
+    };
+    let scene = TraceScene { mesh: &ctx.mesh, bvh: &ctx.bvh, materials };
+    let op = McShading::prepare(&pixels, &to_rows(kd)?, &to_rows(ks)?, &light, &scene, &settings);
     let out = shade_mc(&op, kd, ks, params.light.as_tensor())?;
     let (mut diffuse, mut specular) = (out.narrow(D::Minus1, 0, 3)?, out.narrow(D::Minus1, 3, 3)?);
     if ctx.denoise {

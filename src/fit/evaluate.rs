@@ -70,11 +70,6 @@ pub struct Evaluation {
     pub val_psnr: Option<f64>,
 }
 
-/// Per-pixel materials of a G-buffer looked up in `textures`.
-pub fn texture_materials(textures: &MaterialTextures) -> impl Fn(&GBuffer) -> Vec<Option<crate::material::SurfaceParams>> + '_ {
-    move |g: &GBuffer| g.surfels.par_iter().map(|s| s.map(|s| textures.eval(s.uv))).collect()
-}
-
 fn mean(v: &[f64]) -> Option<f64> {
     let v: Vec<f64> = v.iter().copied().filter(|x| x.is_finite()).collect();
     (!v.is_empty()).then(|| v.iter().sum::<f64>() / v.len() as f64)
@@ -157,17 +152,17 @@ pub fn evaluate(
     let learned = PreparedLight::new(light.clone());
     let train_settings =
         RenderSettings { mode: settings.train_mode, spp: settings.spp, supersample: settings.supersample, seed: settings.seed, effects: settings.effects };
-    let materials = texture_materials(textures);
+    let materials = textures;
     let mut train = Vec::new();
     for view in dataset.train.iter().step_by(settings.train_view_stride.max(1)) {
-        let img = render_view_with(mesh, bvh, &learned, &view.camera, &train_settings, &materials);
+        let img = render_view_with(mesh, bvh, &learned, &view.camera, &train_settings, materials);
         train.push(protocol_psnr(&img, &view.load_rgba()?));
     }
     out.train_psnr = mean(&train);
     let mut val_renders = Vec::new();
     let mut val = Vec::new();
     for view in &dataset.val {
-        let img = render_view_with(mesh, bvh, &learned, &view.camera, &train_settings, &materials);
+        let img = render_view_with(mesh, bvh, &learned, &view.camera, &train_settings, materials);
         val.push(protocol_psnr(&img, &view.load_rgba()?));
         val_renders.push((view.name.clone(), img));
     }
@@ -178,7 +173,7 @@ pub fn evaluate(
         kd: scale_colour(&textures.kd, scale).map_channels(3, |v| v.clamp(0.0, 1.0)),
         ks: textures.ks.clone(),
     });
-    let scaled_materials = scaled_textures.as_ref().map(texture_materials);
+    let scaled_materials = scaled_textures.as_ref();
     let relight_settings =
         RenderSettings { mode: settings.relight_mode, spp: settings.spp, supersample: settings.supersample, seed: settings.seed, effects: settings.effects };
     let views: Vec<&View> = dataset.test.iter().take(settings.max_test_views.unwrap_or(usize::MAX)).collect();
@@ -189,8 +184,8 @@ pub fn evaluate(
                 continue;
             }
             let target = view.load_relit(&probe.name)?;
-            let raw = render_view_with(mesh, bvh, &light, &view.camera, &relight_settings, &materials);
-            let psnr_scaled = match &scaled_materials {
+            let raw = render_view_with(mesh, bvh, &light, &view.camera, &relight_settings, materials);
+            let psnr_scaled = match scaled_materials {
                 Some(m) => protocol_psnr(&render_view_with(mesh, bvh, &light, &view.camera, &relight_settings, m), &target),
                 None => f64::NAN,
             };

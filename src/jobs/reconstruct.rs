@@ -147,6 +147,7 @@ pub fn shading_context(prepared: &Prepared, config: &FitConfig) -> ShadingContex
         denoise: config.denoise,
         seed: config.seed,
         ray_epsilon: ray_epsilon(&prepared.atlas.mesh),
+        mesh: Arc::new(prepared.atlas.mesh.clone()),
         bvh: prepared.bvh.clone(),
         light_maps: Arc::new(LightMaps::matrix_free(config.light_res, PrefilterOptions::default())),
         lut: Arc::new(BrdfLut::compute(32, 512)),

@@ -95,7 +95,9 @@ pub fn run(base: &ReconstructOptions, points: &[TradeoffPoint]) -> Result<Vec<Tr
         o.fit.denoise = pt.denoise;
         o.fit.iterations = pt.iterations;
         o.fit.prior_source = source.tag();
-        o.effects_override = pt.shadows.map(|s| Effects { shadows: s, ..prep.effects.effects });
+        // Interreflection needs shadows: switching shadows off switches it off too.
+        let e = prep.effects.effects;
+        o.effects_override = pt.shadows.map(|s| Effects { shadows: s, indirect_bounces: if s { e.indirect_bounces } else { 0 }, ..e });
         eprintln!("trade-off {}/{}: {}", k + 1, points.len(), pt.name);
         let report = run_prepared(prep, views, &o, &description)?;
         let optimise_seconds = report.stage_seconds.iter().find(|s| s.0 == "optimise").map_or(f64::NAN, |s| s.1);

@@ -2,7 +2,9 @@
 
 pub mod brdf;
 pub mod brdf_grad;
+pub mod field;
 mod part;
 pub mod texture_maps;
 
+pub use field::MaterialField;
 pub use part::{BaseColor, PartMaterial, SurfaceParams};

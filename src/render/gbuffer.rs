@@ -31,10 +31,10 @@ pub struct GBuffer {
 
 use rayon::prelude::*;
 
-use crate::geometry::bvh::Bvh;
+use crate::geometry::bvh::{Bvh, Hit};
 use crate::geometry::Mesh;
 use crate::image::Image;
-use crate::material::SurfaceParams;
+use crate::material::{MaterialField, SurfaceParams};
 use crate::scene::camera::Camera;
 
 impl GBuffer {
@@ -90,12 +90,22 @@ impl GBuffer {
         img
     }
 
-    /// The BRDF inputs of every hit pixel from its triangle's part material at the surfel's UV.
-    pub fn material_params(&self, mesh: &Mesh) -> Vec<Option<SurfaceParams>> {
-        self.surfels
-            .par_iter()
-            .map(|s| s.map(|s| mesh.triangle_material(s.triangle as usize).eval(s.uv)))
-            .collect()
+    /// The BRDF inputs of every hit pixel, looked up in `materials` (a mesh's own part materials,
+    /// or learned atlas textures).
+    pub fn material_params(&self, materials: &dyn MaterialField) -> Vec<Option<SurfaceParams>> {
+        self.surfels.par_iter().map(|s| s.map(|s| s.material(materials))).collect()
+    }
+}
+
+impl Surfel {
+    /// The surface point a ray from `origin` along `dir` hit (primary or secondary), with the
+    /// G-buffer's two-sided rule; `depth` is the hit distance along the ray.
+    pub fn from_hit(mesh: &Mesh, hit: &Hit, origin: Vec3, dir: Vec3) -> Surfel {
+        surfel_at(mesh, hit.triangle, hit.bary, dir, origin, dir)
+    }
+
+    pub fn material(&self, materials: &dyn MaterialField) -> SurfaceParams {
+        materials.at(self.triangle, self.uv)
     }
 }
 

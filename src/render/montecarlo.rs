@@ -1,16 +1,23 @@
-//! Monte Carlo direct lighting (NVDiffRecMC): per pixel, stratified light samples (texel pdf ∝
+//! Monte Carlo shading (NVDiffRecMC): per pixel, stratified light samples (texel pdf ∝
 //! max(rgb)·solid angle) and BSDF samples (cosine or GGX VNDF) combined with the balance heuristic,
 //! shadow rays through the BVH when shadows are on. Results are demodulated: `diffuse` is the
 //! irradiance term before the kd(1−m) product (what a denoiser should filter), `specular` is final.
 //! Each pixel draws from its own seeded stream, so a render is reproducible in any thread order.
+//!
+//! With interreflection on (`Effects::indirect_bounces` > 0), a BSDF sample whose ray the object
+//! blocks is not dropped: it carries the radiance the blocking surface sends back, estimated by
+//! the same sampler at that point with one sample of each strategy (next-event estimation plus a
+//! BSDF sample), recursively for the remaining bounces. Only BSDF sampling can find a surface, so
+//! such a sample's weight is 1/pdf (no MIS weight against the light, which cannot produce it).
 
 use glam::Vec3;
 use rayon::prelude::*;
 
 use crate::geometry::bvh::Bvh;
+use crate::geometry::Mesh;
 use crate::light::sampler::LightSampler;
 use crate::material::brdf::{self, COS_EPS};
-use crate::material::SurfaceParams;
+use crate::material::{MaterialField, SurfaceParams};
 use crate::math::Frame;
 use crate::render::effects::Effects;
 use crate::render::gbuffer::{GBuffer, Surfel};
@@ -25,13 +32,23 @@ pub struct McSettings {
     pub ray_epsilon: f32,
 }
 
+/// What secondary rays see: the geometry (shadow rays and the surfaces interreflection hits) and
+/// the material anywhere on it (looked up only when interreflection is on).
+#[derive(Clone, Copy)]
+pub struct TraceScene<'a> {
+    pub mesh: &'a Mesh,
+    pub bvh: &'a Bvh,
+    pub materials: &'a dyn MaterialField,
+}
+
 /// Demodulated shading of one view.
 pub struct McBuffers {
     /// Σ L·cos/π·w/pdf: multiply by kd(1−m) for diffuse radiance.
     pub diffuse: Vec<Vec3>,
     /// Specular radiance.
     pub specular: Vec<Vec3>,
-    /// Shadow rays traced (zero when shadows are off: an effect that is off costs nothing).
+    /// Rays traced after the primary ones: shadow rays, and bounce rays with interreflection (zero
+    /// when shadows are off: an effect that is off costs nothing).
     pub shadow_rays: u64,
 }
 
@@ -67,15 +84,26 @@ fn specular_probability(p: &SurfaceParams, nov: f32, effects: Effects) -> f32 {
     (spec / (spec + diff)).clamp(0.1, 0.9)
 }
 
+/// Where a sample's incident radiance comes from.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Incident {
+    /// The environment light (a nearest-texel read of the cube map along `wi`).
+    Light,
+    /// The object's own surface along `wi` (interreflection): an estimate of its outgoing radiance.
+    Surface,
+}
+
 /// One contributing sample of a pixel's estimator: incident direction (world and local), the
-/// radiance the light gives along it, and its weight (MIS weight / pdf). Zero-contribution
-/// samples (below the surface, occluded, zero pdf) are not reported.
+/// radiance arriving along it, where that comes from, and its weight (MIS weight / pdf).
+/// Zero-contribution samples (below the surface, occluded without interreflection, zero pdf) are
+/// not reported.
 #[derive(Clone, Copy, Debug)]
 pub struct McSample {
     pub wi: Vec3,
     pub wi_l: Vec3,
     pub radiance: Vec3,
     pub weight: f32,
+    pub incident: Incident,
 }
 
 /// The local outgoing direction `shade_point` uses for a surfel: kept just above the shading
@@ -88,16 +116,33 @@ pub fn local_outgoing(s: &Surfel, wo: Vec3) -> (Frame, Vec3) {
 }
 
 /// Draws one surfel's samples (`spp` of each strategy, balance heuristic) and hands each
-/// contributing one to `visit`; returns the shadow rays traced. The single sampling code path of
-/// the renderer and of the differentiable shader (`montecarlo_op`), so both see the same samples.
+/// contributing one to `visit`; returns the rays traced (shadow rays and, with interreflection, the
+/// rays of the bounces below). The single sampling code path of the renderer and of the
+/// differentiable shader (`montecarlo_op`), so both see the same samples.
 #[allow(clippy::too_many_arguments)] // the renderer's state for one surfel, passed as is
 pub fn draw_samples(
     s: &Surfel,
     wo: Vec3,
     p: &SurfaceParams,
     light: &LightSampler,
-    bvh: &Bvh,
+    scene: &TraceScene,
     settings: &McSettings,
+    rng: &mut Sampler,
+    visit: &mut dyn FnMut(McSample),
+) -> u64 {
+    draw_samples_with_bounces(s, wo, p, light, scene, settings, settings.spp.max(1), settings.effects.indirect_bounces, rng, visit)
+}
+
+#[allow(clippy::too_many_arguments)]
+fn draw_samples_with_bounces(
+    s: &Surfel,
+    wo: Vec3,
+    p: &SurfaceParams,
+    light: &LightSampler,
+    scene: &TraceScene,
+    settings: &McSettings,
+    spp: u32,
+    bounces_left: u32,
     rng: &mut Sampler,
     visit: &mut dyn FnMut(McSample),
 ) -> u64 {
@@ -112,51 +157,91 @@ pub fn draw_samples(
         }
         pdf
     };
-    let origin = s.position + s.geo_normal * settings.ray_epsilon;
+    let eps = settings.ray_epsilon;
+    let origin = s.position + s.geo_normal * eps;
     let mut rays = 0u64;
-    let mut visible = |wi: Vec3| -> bool {
-        // Light arriving from behind the geometric surface is blocked by the surface itself.
-        if wi.dot(s.geo_normal) <= 0.0 {
-            return false;
-        }
-        if !settings.effects.shadows {
-            return true;
-        }
-        rays += 1;
-        !bvh.any_hit(origin, wi, settings.ray_epsilon, f32::INFINITY)
-    };
-    let n = settings.spp.max(1);
-    for k in 0..n {
+    // Light arriving from behind the geometric surface is blocked by the surface itself.
+    let above = |wi: Vec3| wi.dot(s.geo_normal) > 0.0;
+    for k in 0..spp {
         // Light sample, stratified in its first dimension.
         let (r0, r1) = rng.next_2d();
-        let ls = light.sample(((k as f32 + r0) / n as f32, r1));
+        let ls = light.sample(((k as f32 + r0) / spp as f32, r1));
         let wi_l = frame.to_local(ls.dir);
-        if ls.pdf > 0.0 && wi_l.z > 0.0 && visible(ls.dir) {
-            let w = ls.pdf / (ls.pdf + bsdf_pdf(wi_l));
-            visit(McSample { wi: ls.dir, wi_l, radiance: ls.radiance, weight: w / ls.pdf });
+        if ls.pdf > 0.0 && wi_l.z > 0.0 && above(ls.dir) {
+            let visible = !settings.effects.shadows || {
+                rays += 1;
+                !scene.bvh.any_hit(origin, ls.dir, eps, f32::INFINITY)
+            };
+            if visible {
+                let w = ls.pdf / (ls.pdf + bsdf_pdf(wi_l));
+                visit(McSample { wi: ls.dir, wi_l, radiance: ls.radiance, weight: w / ls.pdf, incident: Incident::Light });
+            }
         }
         // BSDF sample.
         let lobe = rng.next_f32();
         let u = rng.next_2d();
         let wi_l = if lobe < ps { brdf::sample_ggx_vndf(wo_l, alpha, u) } else { brdf::sample_cosine(u) };
-        if wi_l.z > 0.0 {
-            let pdf_b = bsdf_pdf(wi_l);
-            let wi = frame.to_world(wi_l);
-            if pdf_b > 0.0 && visible(wi) {
-                let w = pdf_b / (pdf_b + light.pdf(wi));
-                visit(McSample { wi, wi_l, radiance: light.radiance(wi), weight: w / pdf_b });
+        if wi_l.z <= 0.0 {
+            continue;
+        }
+        let pdf_b = bsdf_pdf(wi_l);
+        let wi = frame.to_world(wi_l);
+        if pdf_b <= 0.0 || !above(wi) {
+            continue;
+        }
+        let env = |wi: Vec3| McSample { wi, wi_l, radiance: light.radiance(wi), weight: pdf_b / (pdf_b + light.pdf(wi)) / pdf_b, incident: Incident::Light };
+        if !settings.effects.shadows {
+            visit(env(wi));
+        } else if bounces_left == 0 {
+            rays += 1;
+            if !scene.bvh.any_hit(origin, wi, eps, f32::INFINITY) {
+                visit(env(wi));
+            }
+        } else {
+            rays += 1;
+            match scene.bvh.closest_hit(origin, wi, eps, f32::INFINITY) {
+                None => visit(env(wi)),
+                Some(hit) => {
+                    let y = Surfel::from_hit(scene.mesh, &hit, origin, wi);
+                    let (radiance, r) = outgoing_radiance(&y, -wi, light, scene, settings, bounces_left - 1, rng);
+                    rays += r;
+                    visit(McSample { wi, wi_l, radiance, weight: 1.0 / pdf_b, incident: Incident::Surface });
+                }
             }
         }
     }
     rays
 }
 
+/// One-sample estimate of the radiance surface point `y` sends along `wo` (direct light plus
+/// `bounces_left` further bounces); returns it with the rays traced.
+fn outgoing_radiance(y: &Surfel, wo: Vec3, light: &LightSampler, scene: &TraceScene, settings: &McSettings, bounces_left: u32, rng: &mut Sampler) -> (Vec3, u64) {
+    let p = y.material(scene.materials);
+    let (_, wo_l) = local_outgoing(y, wo);
+    let mut radiance = Vec3::ZERO;
+    let rays = draw_samples_with_bounces(y, wo, &p, light, scene, settings, 1, bounces_left, rng, &mut |smp| {
+        radiance += sample_radiance(&p, wo_l, &smp, settings.effects.specular);
+    });
+    (radiance, rays)
+}
+
+/// A sample's contribution to outgoing radiance: (kd(1−m)·cos/π + specular lobe) · L · weight.
+fn sample_radiance(p: &SurfaceParams, wo_l: Vec3, smp: &McSample, specular: bool) -> Vec3 {
+    let cos = brdf::clamp_cos(smp.wi_l.z);
+    let mut f = p.kd * (1.0 - p.metallic) * (cos / std::f32::consts::PI);
+    if specular {
+        f += brdf::eval(p, wo_l, smp.wi_l).specular;
+    }
+    f * smp.radiance * smp.weight
+}
+
 /// Diffuse (demodulated) and specular estimates for one surfel, `spp` samples of each strategy.
-/// Returns (diffuse, specular, shadow rays traced).
-pub fn shade_point(s: &Surfel, wo: Vec3, p: &SurfaceParams, light: &LightSampler, bvh: &Bvh, settings: &McSettings, rng: &mut Sampler) -> (Vec3, Vec3, u64) {
+/// Returns (diffuse, specular, rays traced).
+#[allow(clippy::too_many_arguments)]
+pub fn shade_point(s: &Surfel, wo: Vec3, p: &SurfaceParams, light: &LightSampler, scene: &TraceScene, settings: &McSettings, rng: &mut Sampler) -> (Vec3, Vec3, u64) {
     let (_, wo_l) = local_outgoing(s, wo);
     let (mut diffuse, mut specular) = (Vec3::ZERO, Vec3::ZERO);
-    let rays = draw_samples(s, wo, p, light, bvh, settings, rng, &mut |smp| {
+    let rays = draw_samples(s, wo, p, light, scene, settings, rng, &mut |smp| {
         let cos = brdf::clamp_cos(smp.wi_l.z);
         diffuse += smp.radiance * (cos / std::f32::consts::PI * smp.weight);
         if settings.effects.specular {
@@ -168,7 +253,7 @@ pub fn shade_point(s: &Surfel, wo: Vec3, p: &SurfaceParams, light: &LightSampler
 }
 
 /// Shade every covered pixel. `stream_offset` separates the random streams of different views.
-pub fn shade(gbuf: &GBuffer, params: &[Option<SurfaceParams>], light: &LightSampler, bvh: &Bvh, settings: &McSettings, stream_offset: u64) -> McBuffers {
+pub fn shade(gbuf: &GBuffer, params: &[Option<SurfaceParams>], light: &LightSampler, scene: &TraceScene, settings: &McSettings, stream_offset: u64) -> McBuffers {
     let shaded: Vec<(Vec3, Vec3, u64)> = gbuf
         .surfels
         .par_iter()
@@ -178,7 +263,7 @@ pub fn shade(gbuf: &GBuffer, params: &[Option<SurfaceParams>], light: &LightSamp
             (Some(s), Some(p)) => {
                 let mut rng = Sampler::new(settings.seed, stream_offset + i as u64);
                 let wo = (gbuf.origin - s.position).normalize();
-                shade_point(s, wo, p, light, bvh, settings, &mut rng)
+                shade_point(s, wo, p, light, scene, settings, &mut rng)
             }
             _ => (Vec3::ZERO, Vec3::ZERO, 0),
         })

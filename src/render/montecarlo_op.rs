@@ -9,6 +9,10 @@
 //! estimator: directions, visibility, pdfs, MIS weights and the lobe choice get no gradient;
 //! radiance (a nearest-texel read) is linear in the light; the specular lobe is differentiated by
 //! hand (`material::brdf_grad`). At the prepare-time values the forward equals `montecarlo::shade`.
+//! With interreflection, a sample that arrives from the object's own surface keeps the radiance
+//! estimated at prepare time as a constant: it is detached like visibility (its dependence on the
+//! material elsewhere and on the light is not differentiated), while the BRDF it meets at the
+//! pixel is differentiated as for light samples.
 //!
 //! Inputs (all f32 or all f64): `kd` [N, 3], `ks` [N, 3] = (occlusion, roughness, metallic),
 //! `light` [6, R, R, 3]. Output [N, 6]: demodulated diffuse light Σ L·cos/π·w (multiply by
@@ -20,7 +24,6 @@ use candle_core::{Result, Tensor};
 use glam::{DVec3, Vec3};
 use rayon::prelude::*;
 
-use crate::geometry::bvh::Bvh;
 use crate::light::sampler::LightSampler;
 use crate::light::CubeMap;
 use crate::material::brdf::clamp_cos;
@@ -28,7 +31,7 @@ use crate::material::brdf_grad::{f0, lobe_and_roughness_grad, schlick_weight};
 use crate::material::SurfaceParams;
 use crate::optim::tape::{apply, scatter_add_banded, Kernel, Real};
 use crate::render::gbuffer::Surfel;
-use crate::render::montecarlo::{draw_samples, local_outgoing, McSettings};
+use crate::render::montecarlo::{draw_samples, local_outgoing, Incident, McSettings, TraceScene};
 use crate::rng::Sampler;
 
 /// One pixel's fixed data: its surfel, the direction to the camera and its random stream.
@@ -45,12 +48,31 @@ impl McPixel {
     }
 }
 
-/// A stored sample: light texel read, local incident direction, weight (MIS / pdf / spp).
+/// Where a stored sample's radiance comes from.
+#[derive(Clone, Copy, Debug)]
+enum Source {
+    /// The light's texel (index into the cube map's texels): differentiable.
+    Texel(u32),
+    /// Interreflected radiance from the object's surface, fixed at prepare time.
+    Surface([f32; 3]),
+}
+
+/// A stored sample: radiance source, local incident direction, weight (MIS / pdf / spp).
 #[derive(Clone, Copy, Debug)]
 struct Stored {
-    texel: u32,
+    source: Source,
     wi_l: [f32; 3],
     weight: f32,
+}
+
+impl Stored {
+    /// The radiance this sample reads, in f64.
+    fn radiance<T: Real>(&self, light: &[T]) -> [f64; 3] {
+        match self.source {
+            Source::Texel(t) => rgb(light, t as usize),
+            Source::Surface(r) => r.map(|v| v as f64),
+        }
+    }
 }
 
 /// The operator for one step's samples (see the module doc).
@@ -67,8 +89,9 @@ pub struct McShading {
 }
 
 impl McShading {
-    /// Draws the samples with the current values (`kd`, `ks` per pixel; `light` the base cube map).
-    pub fn prepare(pixels: &[Option<McPixel>], kd: &[[f32; 3]], ks: &[[f32; 3]], light: &CubeMap, bvh: &Bvh, settings: &McSettings) -> McShading {
+    /// Draws the samples with the current values (`kd`, `ks` per pixel; `light` the base cube map;
+    /// `scene`'s materials are the current ones too, read where bounces land).
+    pub fn prepare(pixels: &[Option<McPixel>], kd: &[[f32; 3]], ks: &[[f32; 3]], light: &CubeMap, scene: &TraceScene, settings: &McSettings) -> McShading {
         let sampler = LightSampler::new(light);
         let inv_n = 1.0 / settings.spp.max(1) as f32;
         let per_pixel: Vec<(Option<[f32; 3]>, Vec<Stored>, u64)> = pixels
@@ -79,8 +102,12 @@ impl McShading {
                 let p = SurfaceParams { kd: Vec3::from_array(kd[i]), roughness: ks[i][1], metallic: ks[i][2] };
                 let mut rng = Sampler::new(settings.seed, px.stream);
                 let mut stored = Vec::with_capacity(2 * settings.spp as usize);
-                let rays = draw_samples(&px.surfel, px.wo, &p, &sampler, bvh, settings, &mut rng, &mut |s| {
-                    stored.push(Stored { texel: light.nearest_texel(s.wi) as u32, wi_l: s.wi_l.to_array(), weight: s.weight * inv_n });
+                let rays = draw_samples(&px.surfel, px.wo, &p, &sampler, scene, settings, &mut rng, &mut |s| {
+                    let source = match s.incident {
+                        Incident::Light => Source::Texel(light.nearest_texel(s.wi) as u32),
+                        Incident::Surface => Source::Surface(s.radiance.to_array()),
+                    };
+                    stored.push(Stored { source, wi_l: s.wi_l.to_array(), weight: s.weight * inv_n });
                 });
                 (Some(local_outgoing(&px.surfel, px.wo).1.to_array()), stored, rays)
             })
@@ -168,7 +195,7 @@ impl Kernel for McShading {
             let mut acc = [0.0f64; 6];
             for s in self.pixel_samples(p) {
                 let e = eval_sample(wo, s, rough, self.specular);
-                let l = rgb(light, s.texel as usize);
+                let l = s.radiance(light);
                 for c in 0..3 {
                     acc[c] += e.diffuse * l[c];
                     acc[3 + c] += (f0[c] * (1.0 - e.schlick) + e.schlick) * e.lobe * l[c];
@@ -200,7 +227,7 @@ impl Kernel for McShading {
                     let (mut gkd, mut gr, mut gm) = ([0.0f64; 3], 0.0, 0.0);
                     for s in self.pixel_samples(p) {
                         let e = eval_sample(wo, s, rough, true);
-                        let l = rgb(light, s.texel as usize);
+                        let l = s.radiance(light);
                         for c in 0..3 {
                             let gs = g[3 + c] * l[c];
                             let fresnel = f0[c] * (1.0 - e.schlick) + e.schlick;
@@ -232,10 +259,11 @@ impl Kernel for McShading {
                 let Some((wo, k, rough, metal, g)) = pixel(p) else { return };
                 let f0 = f0(k, metal);
                 for s in self.pixel_samples(p) {
+                    let Source::Texel(texel) = s.source else { continue };
                     let e = eval_sample(wo, s, rough, self.specular);
                     for c in 0..3 {
                         let spec = (f0[c] * (1.0 - e.schlick) + e.schlick) * e.lobe;
-                        sink.add(3 * s.texel as usize + c, g[c] * e.diffuse + g[3 + c] * spec);
+                        sink.add(3 * texel as usize + c, g[c] * e.diffuse + g[3 + c] * spec);
                     }
                 }
             });

@@ -13,9 +13,10 @@ use crate::light::brdf_lut::BrdfLut;
 use crate::light::prefilter::SplitSumLight;
 use crate::light::sampler::LightSampler;
 use crate::light::CubeMap;
-use crate::material::SurfaceParams;
+use crate::material::{MaterialField, SurfaceParams};
 use crate::render::effects::Effects;
 use crate::render::gbuffer::GBuffer;
+use crate::render::montecarlo::TraceScene;
 use crate::render::{montecarlo, splitsum};
 use crate::scene::Camera;
 
@@ -39,7 +40,7 @@ pub struct RenderSettings {
 
 impl Default for RenderSettings {
     fn default() -> Self {
-        RenderSettings { mode: ShadingMode::MonteCarlo, spp: 16, supersample: 2, seed: 0, effects: Effects::ALL }
+        RenderSettings { mode: ShadingMode::MonteCarlo, spp: 16, supersample: 2, seed: 0, effects: Effects::DIRECT }
     }
 }
 
@@ -77,16 +78,18 @@ pub fn ray_epsilon(mesh: &Mesh) -> f32 {
     1e-4 * (hi - lo).length().max(1e-3)
 }
 
-/// Shade a traced G-buffer: linear radiance per G-buffer pixel.
+/// Shade a traced G-buffer of `mesh` with its own part materials: linear radiance per pixel.
 pub fn shade_gbuffer(gbuf: &GBuffer, mesh: &Mesh, bvh: &Bvh, light: &PreparedLight, settings: &RenderSettings, stream_offset: u64) -> Vec<Vec3> {
-    shade_with_params(gbuf, &gbuf.material_params(mesh), bvh, light, settings, stream_offset, ray_epsilon(mesh))
+    let scene = TraceScene { mesh, bvh, materials: mesh };
+    shade_with_params(gbuf, &gbuf.material_params(mesh), &scene, light, settings, stream_offset, ray_epsilon(mesh))
 }
 
-/// Shade a traced G-buffer whose per-pixel materials are given (e.g. looked up in textures).
+/// Shade a traced G-buffer whose per-pixel materials are given (e.g. looked up in textures);
+/// `scene` is what shadow and bounce rays see.
 pub fn shade_with_params(
     gbuf: &GBuffer,
     params: &[Option<SurfaceParams>],
-    bvh: &Bvh,
+    scene: &TraceScene,
     light: &PreparedLight,
     settings: &RenderSettings,
     stream_offset: u64,
@@ -99,7 +102,7 @@ pub fn shade_with_params(
         }
         ShadingMode::MonteCarlo => {
             let mc = montecarlo::McSettings { spp: settings.spp, seed: settings.seed, effects: settings.effects, ray_epsilon };
-            montecarlo::shade(gbuf, params, light.sampler(), bvh, &mc, stream_offset).radiance(params)
+            montecarlo::shade(gbuf, params, light.sampler(), scene, &mc, stream_offset).radiance(params)
         }
     }
 }
@@ -107,23 +110,24 @@ pub fn shade_with_params(
 /// Render one view to a linear RGBA image with straight (un-premultiplied) colour and coverage
 /// alpha, the convention of the dataset's `rgba.png` (before its sRGB encoding).
 pub fn render_view(mesh: &Mesh, bvh: &Bvh, light: &PreparedLight, camera: &Camera, settings: &RenderSettings) -> Image {
-    render_view_with(mesh, bvh, light, camera, settings, &|gbuf| gbuf.material_params(mesh))
+    render_view_with(mesh, bvh, light, camera, settings, mesh)
 }
 
-/// [`render_view`] with the materials of each G-buffer pixel given by `materials` (e.g. learned
-/// textures looked up at the surfels' UVs).
+/// [`render_view`] with the materials given by `materials` (e.g. learned textures looked up at
+/// the surfels' atlas UVs), for the visible surface and for the surfaces bounces reach.
 pub fn render_view_with(
     mesh: &Mesh,
     bvh: &Bvh,
     light: &PreparedLight,
     camera: &Camera,
     settings: &RenderSettings,
-    materials: &dyn Fn(&GBuffer) -> Vec<Option<SurfaceParams>>,
+    materials: &dyn MaterialField,
 ) -> Image {
     let s = settings.supersample.max(1);
     let fine = camera.resized(camera.width * s, camera.height * s);
     let gbuf = GBuffer::trace(mesh, bvh, &fine);
-    let radiance = shade_with_params(&gbuf, &materials(&gbuf), bvh, light, settings, 0, ray_epsilon(mesh));
+    let scene = TraceScene { mesh, bvh, materials };
+    let radiance = shade_with_params(&gbuf, &gbuf.material_params(materials), &scene, light, settings, 0, ray_epsilon(mesh));
     let mut premultiplied = Image::new(fine.width, fine.height, 4);
     for (i, (c, surfel)) in radiance.iter().zip(&gbuf.surfels).enumerate() {
         if surfel.is_some() {

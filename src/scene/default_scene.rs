@@ -141,7 +141,7 @@ pub fn ensure_dataset(dir: &Path) -> Result<()> {
             Probe::load(&probe_dir.join(format!("{name}.hdr")), 1.0)
         })
         .collect::<Result<Vec<_>>>()?;
-    let settings = RenderSettings { mode: ShadingMode::MonteCarlo, spp: 64, supersample: 2, seed: 7, effects: Effects::ALL };
+    let settings = RenderSettings { mode: ShadingMode::MonteCarlo, spp: 64, supersample: 2, seed: 7, effects: Effects::DIRECT };
     let name = dir.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_else(|| "default".into());
     let partial = dir.with_file_name(format!("{name}.partial-{}", std::process::id()));
     if partial.exists() {

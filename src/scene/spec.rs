@@ -293,7 +293,7 @@ mod tests {
         assert_eq!(spec.test_probes.names.len(), 8);
         assert_eq!(spec.test_probes.strength, 1.0);
         assert_eq!(spec.test_probes.folders[1], crate_dir().join("tests/fixtures/probes"));
-        assert_eq!(spec.effects, EffectSwitches { shadows: Switch::Auto, specular: Switch::Auto });
+        assert_eq!(spec.effects, EffectSwitches { shadows: Switch::Auto, specular: Switch::Auto, ..Default::default() });
         assert!(spec.train_probe.is_none() && spec.gt_dir().is_none());
     }
 
@@ -308,7 +308,7 @@ mod tests {
         let spec = SceneSpec::parse(text, Path::new("/specs"), "x").expect("test setup");
         assert_eq!(spec.data_dir, shared_dir().join("data/x"));
         assert_eq!(spec.train_probe, Some(ProbeFile { path: "/abs/probe.hdr".into(), strength: 3.0 }));
-        assert_eq!(spec.effects, EffectSwitches { shadows: Switch::On, specular: Switch::Off });
+        assert_eq!(spec.effects, EffectSwitches { shadows: Switch::On, specular: Switch::Off, ..Default::default() });
         let moved = spec.with_data_dir("/elsewhere");
         assert_eq!(moved.gt_dir(), Some(PathBuf::from("/elsewhere/gt")));
     }
