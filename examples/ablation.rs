@@ -3,7 +3,7 @@
 //! ablation.md, ablation.json and prior_quality.png.
 //!
 //! cargo run --release --example ablation -- [--scene nerfactor_hotdog] [--iterations 1500]
-//!     [--mode split-sum|mc] [--sweep 0.5,1.5,2] [--labels DIR] [--idarb] [--out DIR]
+//!     [--mode auto|split-sum|mc] [--sweep 0.5,1.5,2] [--labels DIR] [--idarb] [--out DIR]
 
 use std::path::PathBuf;
 
@@ -24,8 +24,8 @@ struct Args {
     scene: String,
     #[arg(long, default_value_t = 1500)]
     iterations: usize,
-    /// split-sum or mc.
-    #[arg(long, default_value = "split-sum")]
+    /// auto (Monte Carlo when the scene needs shadows or interreflection), split-sum or mc.
+    #[arg(long, default_value = "auto")]
     mode: String,
     /// idarb-sim levels of the prior-quality sweep (0 = oracle); empty for none.
     #[arg(long, value_delimiter = ',', default_value = "0,0.5,1,1.5,2")]
@@ -48,11 +48,12 @@ struct Args {
 fn main() -> Result<()> {
     let a = Args::parse();
     let mode = match a.mode.as_str() {
-        "mc" => ShadingMode::MonteCarlo,
-        "split-sum" => ShadingMode::SplitSum,
-        other => anyhow::bail!("--mode {other}: use split-sum or mc"),
+        "auto" => None,
+        "mc" => Some(ShadingMode::MonteCarlo),
+        "split-sum" => Some(ShadingMode::SplitSum),
+        other => anyhow::bail!("--mode {other}: use auto, split-sum or mc"),
     };
-    let fit = FitConfig { mode, iterations: a.iterations, ..FitConfig::default() };
+    let fit = FitConfig { mode: mode.unwrap_or(ShadingMode::SplitSum), iterations: a.iterations, ..FitConfig::default() };
     let out = a.out.unwrap_or_else(|| default_out(&a.scene));
     if a.replot {
         let path = out.join("ablation.json");
@@ -64,7 +65,7 @@ fn main() -> Result<()> {
         println!("wrote {}", out.join("prior_quality.png").display());
         return Ok(());
     }
-    let base = ReconstructOptions::new(&a.scene, fit, a.eval_spp, out.clone());
+    let base = ReconstructOptions { auto_mode: mode.is_none(), ..ReconstructOptions::new(&a.scene, fit, a.eval_spp, out.clone()) };
     let mut sources = vec![PriorSource::None, PriorSource::IdarbSim(1.0), PriorSource::Oracle];
     if a.idarb {
         sources.push(PriorSource::Idarb);

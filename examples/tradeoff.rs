@@ -1,5 +1,5 @@
 //! What accuracy costs in time (issue 5): sweeps shading mode, samples per pixel, the denoiser,
-//! resolution, shadows, iterations and labelled-view count on one scene; writes tradeoff.csv and
+//! resolution, effects (shadows, interreflection bounces), iterations and labelled-view count on one scene; writes tradeoff.csv and
 //! tradeoff.png (Pareto front marked) and prints the front.
 //!
 //! cargo run --release --example tradeoff -- [--scene nerfactor_hotdog] [--iterations 300] [--out DIR]

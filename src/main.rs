@@ -36,8 +36,21 @@ enum Geometry {
 
 #[derive(Clone, Copy, ValueEnum)]
 enum TrainMode {
+    /// Monte Carlo when the scene's effects need visibility (shadows, interreflection), else split-sum.
+    Auto,
     SplitSum,
     Mc,
+}
+
+impl TrainMode {
+    /// The fixed mode, or None for auto.
+    fn fixed(self) -> Option<ShadingMode> {
+        match self {
+            TrainMode::Auto => None,
+            TrainMode::SplitSum => Some(ShadingMode::SplitSum),
+            TrainMode::Mc => Some(ShadingMode::MonteCarlo),
+        }
+    }
 }
 
 /// Optimise materials and light of a scene (the default command).
@@ -55,7 +68,7 @@ struct ReconstructArgs {
     #[arg(long, value_enum, default_value = "gt")]
     geometry: Geometry,
     /// Shading during optimisation.
-    #[arg(long, value_enum, default_value = "split-sum")]
+    #[arg(long, value_enum, default_value = "auto")]
     mode: TrainMode,
     /// Monte Carlo samples per pixel and strategy (training).
     #[arg(long)]
@@ -129,7 +142,7 @@ enum Command {
         #[arg(long, default_value_t = 300)]
         iterations: usize,
         /// Shading during optimisation.
-        #[arg(long, value_enum, default_value = "split-sum")]
+        #[arg(long, value_enum, default_value = "auto")]
         mode: TrainMode,
         /// idarb-sim levels of a prior-quality sweep (e.g. 0,0.5,1,2); none by default.
         #[arg(long, value_delimiter = ',')]
@@ -171,7 +184,8 @@ enum Command {
 }
 
 fn reconstruct(a: ReconstructArgs) -> Result<()> {
-    let mut fit = FitConfig { mode: match a.mode { TrainMode::SplitSum => ShadingMode::SplitSum, TrainMode::Mc => ShadingMode::MonteCarlo }, denoise: a.denoise, ..FitConfig::default() };
+    let fixed_mode = a.mode.fixed();
+    let mut fit = FitConfig { mode: fixed_mode.unwrap_or(ShadingMode::SplitSum), denoise: a.denoise, ..FitConfig::default() };
     if let Some(v) = a.spp { fit.spp = v; }
     if let Some(v) = a.iterations { fit.iterations = v; }
     if let Some(v) = a.batch { fit.batch = v; }
@@ -186,10 +200,10 @@ fn reconstruct(a: ReconstructArgs) -> Result<()> {
     if let Some(v) = a.prior_roughness { fit.prior.roughness = v; }
     if let Some(v) = a.prior_metallic { fit.prior.metallic = v; }
     let prior: PriorSource = a.prior.parse()?;
-    let mode_tag = match fit.mode { ShadingMode::SplitSum => "splitsum", ShadingMode::MonteCarlo => "mc" };
+    let mode_tag = match fixed_mode { None => "auto", Some(ShadingMode::SplitSum) => "splitsum", Some(ShadingMode::MonteCarlo) => "mc" };
     let out = a.out.unwrap_or_else(|| PathBuf::from(format!("runs/{}-{}-{mode_tag}", a.scene, a.prior.replace([':', '/'], "_"))));
     let geometry = match a.geometry { Geometry::Gt => GeometrySource::GroundTruth };
-    let opts = ReconstructOptions { scene: a.scene, data: a.data, geometry, fit, eval_spp: a.eval_spp, out: out.clone(), progress: !a.quiet, labelled_views: a.labelled_views, idarb_weights: a.idarb_weights, effects_override: None, eval_test_views: None };
+    let opts = ReconstructOptions { scene: a.scene, data: a.data, geometry, fit, eval_spp: a.eval_spp, out: out.clone(), progress: !a.quiet, labelled_views: a.labelled_views, idarb_weights: a.idarb_weights, effects_override: None, eval_test_views: None, auto_mode: fixed_mode.is_none() };
     let report = run_job(&opts, &prior)?;
     println!("{}", report.summary());
     println!("wrote {}", out.display());
@@ -201,9 +215,10 @@ fn main() -> Result<()> {
     let Some(command) = cli.command else { return reconstruct(cli.reconstruct) };
     match command {
         Command::Ablation { scene, iterations, mode, sweep, eval_spp, out } => {
-            let mode = match mode { TrainMode::SplitSum => ShadingMode::SplitSum, TrainMode::Mc => ShadingMode::MonteCarlo };
             let out = out.unwrap_or_else(|| ablation::default_out(&scene));
-            let base = ReconstructOptions::new(&scene, FitConfig { mode, iterations, ..FitConfig::default() }, eval_spp, out.clone());
+            let fixed_mode = mode.fixed();
+            let fit = FitConfig { mode: fixed_mode.unwrap_or(ShadingMode::SplitSum), iterations, ..FitConfig::default() };
+            let base = ReconstructOptions { auto_mode: fixed_mode.is_none(), ..ReconstructOptions::new(&scene, fit, eval_spp, out.clone()) };
             let sources = vec![PriorSource::None, PriorSource::IdarbSim(1.0), PriorSource::Oracle];
             let report = ablation::run(&ablation::AblationOptions { base, sources, sweep })?;
             println!("{}", report.markdown());

@@ -81,6 +81,7 @@ fn forward_matches_the_renderer_with_and_without_shadows_and_bounces() -> anyhow
             g.surfels.iter().enumerate().map(|(i, s)| s.map(|_| SurfaceParams { kd: Vec3::from_array(kd[i]), roughness: ks[i][1], metallic: ks[i][2] })).collect();
         let reference = shade(&g, &params, &LightSampler::new(&light), &trace, &s, 0);
         assert_eq!(op.shadow_rays, reference.shadow_rays);
+        assert_eq!(op.surface_samples > 0, bounces > 0, "{} samples from the surface with {bounces} bounces", op.surface_samples);
         let mut covered = 0;
         for (i, row) in out.iter().enumerate() {
             let (d, sp) = (reference.diffuse[i], reference.specular[i]);
@@ -101,6 +102,7 @@ fn check(kd: Vec<[f32; 3]>, ks: Vec<[f32; 3]>, light: CubeMap, s: McSettings, to
     let (mesh, bvh, g) = scene();
     let trace = TraceScene { mesh: &mesh, bvh: &bvh, materials: &mesh };
     let op = McShading::prepare(&pixels(&g), &kd, &ks, &light, &trace, &s);
+    assert_eq!(op.surface_samples > 0, s.effects.interreflection(), "bounce samples must be exercised exactly when on");
     let n = g.surfels.len();
     let weights = Tensor::rand(0.5f64, 1.5, (n, 6), &Device::Cpu)?;
     let opts = GradCheckOptions { eps: 1e-6, tol, max_elements: 400, seed: 3 };

@@ -1,21 +1,25 @@
 //! Physics of the two shading modes: Monte Carlo converges to a brute-force integral, split-sum and
-//! MC agree under a constant light (white furnace), and hard cases stay finite.
+//! MC agree under a constant light (white furnace), interreflection conserves energy (a white
+//! concave object in a white furnace disappears), and hard cases stay finite.
 
-use glam::{Vec2, Vec3};
+use glam::{Quat, Vec2, Vec3};
 use reconstruct::geometry::bvh::Bvh;
+use reconstruct::geometry::primitives::MeshBuilder;
 use reconstruct::geometry::Mesh;
 use reconstruct::image::Image;
 use reconstruct::light::sampler::LightSampler;
 use reconstruct::light::CubeMap;
 use reconstruct::material::brdf;
-use reconstruct::material::SurfaceParams;
+use reconstruct::material::{BaseColor, PartMaterial, SurfaceParams};
 use reconstruct::math::Frame;
 use reconstruct::render::effects::Effects;
 use reconstruct::render::gbuffer::Surfel;
-use reconstruct::render::montecarlo::{shade_point, McSettings, TraceScene};
+use reconstruct::render::gbuffer::GBuffer;
+use reconstruct::render::montecarlo::{shade, shade_point, McSettings, TraceScene};
 use reconstruct::render::splitsum;
 use reconstruct::render::view::PreparedLight;
 use reconstruct::rng::Sampler;
+use reconstruct::scene::Camera;
 
 /// A smooth, strongly varying lat-long light (a bright lobe plus a gradient).
 fn smooth_light(w: usize, h: usize) -> Image {
@@ -105,6 +109,61 @@ fn white_furnace_both_modes() {
     assert_eq!(rays, 0, "shadows off must trace no shadow rays");
 }
 
+/// Per covered pixel of a view of a white Lambert ball resting in a white bowl-like dip (a ball on
+/// a disc with a rim), under constant light 1: outgoing radiance, Monte Carlo with `bounces`.
+fn furnace_radiance(bounces: u32, spp: u32) -> Vec<f32> {
+    let mut b = MeshBuilder::new();
+    let white = b.part(PartMaterial { name: "white".into(), base_color: BaseColor::Constant(Vec3::ONE), roughness: 1.0, metallic: 0.0 });
+    b.ellipsoid(white, Vec3::new(0.0, 0.0, 0.4), Vec3::splat(0.4), Quat::IDENTITY, 32, 16);
+    b.cylinder(white, Vec2::ZERO, 1.0, -0.1, 0.0, 48);
+    for k in 0..6 {
+        let a = k as f32 * std::f32::consts::TAU / 6.0;
+        b.ellipsoid(white, Vec3::new(0.75 * a.cos(), 0.75 * a.sin(), 0.15), Vec3::new(0.2, 0.2, 0.3), Quat::IDENTITY, 16, 8);
+    }
+    let mesh = b.build();
+    let bvh = Bvh::build(&mesh);
+    let camera = Camera::look_at(Vec3::new(1.6, 0.9, 1.5), Vec3::new(0.0, 0.0, 0.2), Vec3::Z, 0.9, 24, 24);
+    let gbuf = GBuffer::trace(&mesh, &bvh, &camera);
+    let params = gbuf.material_params(&mesh);
+    let light = PreparedLight::new(CubeMap::constant(8, Vec3::ONE));
+    let settings = McSettings { spp, seed: 4, effects: Effects { shadows: true, specular: false, indirect_bounces: bounces }, ray_epsilon: 1e-4 };
+    let scene = TraceScene { mesh: &mesh, bvh: &bvh, materials: &mesh };
+    let out = shade(&gbuf, &params, light.sampler(), &scene, &settings, 0).radiance(&params);
+    out.iter().zip(&gbuf.surfels).filter(|(_, s)| s.is_some()).map(|(c, _)| c.x).collect()
+}
+
+/// The pixels where direct light is darkest (a tenth of them: the ball's contact, between the
+/// bumps), chosen on `direct` so the noise of the values averaged does not pick them.
+fn darkest_tenth(direct: &[f32]) -> Vec<usize> {
+    let mut order: Vec<usize> = (0..direct.len()).collect();
+    order.sort_by(|&a, &b| direct[a].total_cmp(&direct[b]));
+    order.truncate((direct.len() / 10).max(1));
+    order
+}
+
+#[test]
+fn white_furnace_with_interreflection_conserves_energy() {
+    // A white object in a white furnace reflects every bit of light it receives, from the sky or
+    // from itself: with enough bounces its radiance is 1 everywhere, concavities included. Direct
+    // light alone leaves the occluded parts dark, which shows the test can fail.
+    let direct = furnace_radiance(0, 64);
+    let bounced = furnace_radiance(12, 64);
+    let mean = |v: &[f32]| v.iter().sum::<f32>() / v.len() as f32;
+    let dark = darkest_tenth(&direct);
+    let mean_at = |v: &[f32]| dark.iter().map(|&i| v[i]).sum::<f32>() / dark.len() as f32;
+    let (dark_direct, dark_bounced) = (mean_at(&direct), mean_at(&bounced));
+    println!(
+        "{} pixels: direct mean {:.4}, darkest tenth {dark_direct:.4}; 12 bounces mean {:.4}, darkest tenth {dark_bounced:.4}",
+        bounced.len(),
+        mean(&direct),
+        mean(&bounced)
+    );
+    assert!(bounced.len() > 200, "too few covered pixels: {}", bounced.len());
+    assert!(dark_direct < 0.85, "the scene is not concave enough to test anything: {dark_direct}");
+    assert!((mean(&bounced) - 1.0).abs() < 0.01, "mean radiance {} with interreflection", mean(&bounced));
+    assert!(dark_bounced > 0.97, "occluded pixels reach only {dark_bounced} with interreflection");
+}
+
 #[test]
 fn split_sum_matches_monte_carlo_under_constant_light_with_specular() {
     // Under a constant light split-sum is exact up to the LUT and prefilter resolution: both modes
@@ -147,9 +206,11 @@ fn hard_cases_stay_finite() {
                     for wo in wos {
                         let (d, s) = splitsum::shade_point(n, wo, &p, ss, lut, Effects::DIRECT);
                         assert!(d.is_finite() && s.is_finite(), "split-sum r {rough} n {n:?} wo {wo:?}");
-                        let settings = McSettings { spp: 8, seed: 1, effects: Effects::DIRECT, ray_epsilon: 1e-4 };
-                        let (d, s, _) = shade_point(&surfel(n), wo, &p, prepared.sampler(), &TraceScene { mesh: &mesh, bvh: &bvh, materials: &mesh }, &settings, &mut Sampler::new(1, 2));
-                        assert!(d.is_finite() && s.is_finite(), "MC r {rough} n {n:?} wo {wo:?}: {d:?} {s:?}");
+                        for effects in [Effects::DIRECT, Effects::with_bounces(3)] {
+                            let settings = McSettings { spp: 8, seed: 1, effects, ray_epsilon: 1e-4 };
+                            let (d, s, _) = shade_point(&surfel(n), wo, &p, prepared.sampler(), &TraceScene { mesh: &mesh, bvh: &bvh, materials: &mesh }, &settings, &mut Sampler::new(1, 2));
+                            assert!(d.is_finite() && s.is_finite(), "MC r {rough} n {n:?} wo {wo:?} {effects:?}: {d:?} {s:?}");
+                        }
                     }
                 }
             }

@@ -9,7 +9,7 @@ use reconstruct::geometry::Mesh;
 use reconstruct::image::Image;
 use reconstruct::light::CubeMap;
 use reconstruct::material::{BaseColor, PartMaterial};
-use reconstruct::render::effects::{choose, EffectSwitches, Effects, Switch};
+use reconstruct::render::effects::{choose, interreflection_share, visible_self_occlusion, EffectSwitches, Effects, Switch, DEFAULT_INDIRECT_BOUNCES};
 use reconstruct::render::gbuffer::GBuffer;
 use reconstruct::render::view::{render_view, PreparedLight, RenderSettings, ShadingMode};
 use reconstruct::scene::Camera;
@@ -66,6 +66,36 @@ fn auto_effects_follow_the_scene() {
     let forced = EffectSwitches { shadows: Switch::Off, specular: Switch::On, ..Default::default() };
     let choice = choose(forced, &occluding, &Bvh::build(&occluding), &[], true);
     assert_eq!(choice.effects, Effects { shadows: false, specular: true, indirect_bounces: 0 });
+}
+
+#[test]
+fn auto_interreflection_weighs_the_blocked_sky_by_the_albedo_blocking_it() {
+    let occluding = sphere_on_slab(0.95);
+    let bvh = Bvh::build(&occluding);
+    let views: Vec<GBuffer> = cameras().iter().map(|c| GBuffer::trace(&occluding, &bvh, c)).collect();
+    let occlusion = visible_self_occlusion(&bvh, &views, 4000, 2);
+    // Same rays: unknown materials count every blocker as white; known ones by their albedo
+    // (both parts have kd (0.6, 0.5, 0.4), luminance 0.5130).
+    let unknown = interreflection_share(&occluding, &bvh, None, &views, 4000, 2);
+    let known = interreflection_share(&occluding, &bvh, Some(&occluding), &views, 4000, 2);
+    println!("occlusion {occlusion:.4}, share unknown {unknown:.4}, known {known:.4}");
+    assert!(occlusion > 0.05, "the scene must occlude itself: {occlusion}");
+    assert!((unknown - occlusion).abs() < 1e-6);
+    assert!((known - 0.5130 * occlusion).abs() < 2e-3 * occlusion, "{known} vs {}", 0.5130 * occlusion);
+    let choice = choose(EffectSwitches::default(), &occluding, &bvh, &views, true);
+    println!("{choice}");
+    assert_eq!(choice.effects.indirect_bounces, DEFAULT_INDIRECT_BOUNCES, "{:.1}% comes back from the object", 100.0 * known);
+
+    // A convex object reflects nothing onto itself; interreflection forced on brings shadows.
+    let lone = lone_sphere();
+    let lone_bvh = Bvh::build(&lone);
+    let lone_views: Vec<GBuffer> = cameras().iter().map(|c| GBuffer::trace(&lone, &lone_bvh, c)).collect();
+    assert_eq!(interreflection_share(&lone, &lone_bvh, None, &lone_views, 4000, 2), 0.0);
+    assert_eq!(choose(EffectSwitches::default(), &lone, &lone_bvh, &lone_views, true).effects.indirect_bounces, 0);
+    let forced = EffectSwitches { shadows: Switch::Off, interreflection: Switch::On, bounces: Some(2), ..Default::default() };
+    let choice = choose(forced, &lone, &lone_bvh, &lone_views, true);
+    assert_eq!(choice.effects, Effects { shadows: true, specular: false, indirect_bounces: 2 });
+    assert!(choice.reasons.iter().any(|r| r.contains("interreflection needs them")), "{choice}");
 }
 
 #[test]

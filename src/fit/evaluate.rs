@@ -90,15 +90,27 @@ fn encode(img: &Image) -> Image {
     img.map_channels(img.colour_channels(), |v| crate::color::linear_to_srgb(v.clamp(0.0, 1.0)))
 }
 
-/// The material metrics on the validation views (kd, roughness, metallic, normals).
-fn material_metrics(val: &[View], mesh: &Mesh, bvh: &Bvh, textures: &MaterialTextures, out: &mut Evaluation) -> Result<()> {
+/// The learned materials seen from one validation view: kd (linear RGB), roughness, metallic.
+pub struct MaterialMaps {
+    pub view: String,
+    pub kd: Image,
+    pub roughness: Image,
+    pub metallic: Image,
+}
+
+/// The material metrics on the validation views (kd, roughness, metallic, normals); returns the
+/// learned maps of each view.
+fn material_metrics(val: &[View], mesh: &Mesh, bvh: &Bvh, textures: &MaterialTextures, out: &mut Evaluation) -> Result<Vec<MaterialMaps>> {
+    let mut maps = Vec::new();
     let (mut raw, mut scaled, mut rough, mut metal, mut normal) = (vec![], vec![], vec![], vec![], vec![]);
     let mut scale = None;
     for view in val {
         let g = GBuffer::trace(mesh, bvh, &view.camera);
+        let kd = gbuffer_image(&g, 3, |s| textures.eval(s.uv).kd.to_array().to_vec());
+        let r = gbuffer_image(&g, 1, |s| vec![textures.eval(s.uv).roughness]);
+        let m = gbuffer_image(&g, 1, |s| vec![textures.eval(s.uv).metallic]);
         if view.has_albedo() {
             let gt = view.load_albedo()?;
-            let kd = gbuffer_image(&g, 3, |s| textures.eval(s.uv).kd.to_array().to_vec());
             let covered: Vec<bool> = g.surfels.iter().map(|s| s.is_some()).collect();
             let mask: Vec<bool> = mask_from_alpha(&gt, 0.9).iter().zip(&covered).map(|(a, b)| *a && *b).collect();
             let gt_rgb = crate::image::io::to_rgb(&gt);
@@ -111,14 +123,13 @@ fn material_metrics(val: &[View], mesh: &Mesh, bvh: &Bvh, textures: &MaterialTex
                 normal.push(mean_angular_error_deg(&n, &gt_n, Some(&mask)));
             }
             if let Some(gt_r) = view.load_roughness_if_present()? {
-                let r = gbuffer_image(&g, 1, |s| vec![textures.eval(s.uv).roughness]);
                 rough.push(mse(&r, &gt_r, Some(&mask)));
             }
             if let Some(gt_m) = view.load_metallic_if_present()? {
-                let m = gbuffer_image(&g, 1, |s| vec![textures.eval(s.uv).metallic]);
                 metal.push(mse(&m, &gt_m, Some(&mask)));
             }
         }
+        maps.push(MaterialMaps { view: view.name.clone(), kd, roughness: r, metallic: m });
     }
     out.albedo_psnr_raw = mean(&raw);
     out.albedo_psnr_scaled = mean(&scaled);
@@ -126,7 +137,7 @@ fn material_metrics(val: &[View], mesh: &Mesh, bvh: &Bvh, textures: &MaterialTex
     out.roughness_mse = mean(&rough);
     out.metallic_mse = mean(&metal);
     out.normal_error_deg = mean(&normal);
-    Ok(())
+    Ok(maps)
 }
 
 /// Renders of the validation views under the learned light (returned for export) and the scores.
@@ -134,6 +145,8 @@ pub struct Evaluated {
     pub metrics: Evaluation,
     /// (view name, linear RGBA render) of each validation view.
     pub val_renders: Vec<(String, Image)>,
+    /// The learned materials seen from each validation view.
+    pub val_materials: Vec<MaterialMaps>,
 }
 
 /// Evaluate `textures` + `light` on `mesh` (the atlas mesh the textures belong to).
@@ -147,7 +160,7 @@ pub fn evaluate(
     settings: &EvalSettings,
 ) -> Result<Evaluated> {
     let mut out = Evaluation::default();
-    material_metrics(&dataset.val, mesh, bvh, textures, &mut out).context("material metrics on the validation views")?;
+    let val_materials = material_metrics(&dataset.val, mesh, bvh, textures, &mut out).context("material metrics on the validation views")?;
 
     let learned = PreparedLight::new(light.clone());
     let train_settings =
@@ -194,5 +207,5 @@ pub fn evaluate(
     }
     out.relight_psnr_raw = mean(&out.relight.iter().map(|r| r.psnr_raw).collect::<Vec<_>>());
     out.relight_psnr_scaled = mean(&out.relight.iter().map(|r| r.psnr_scaled).collect::<Vec<_>>());
-    Ok(Evaluated { metrics: out, val_renders })
+    Ok(Evaluated { metrics: out, val_renders, val_materials })
 }

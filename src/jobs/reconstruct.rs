@@ -16,7 +16,7 @@ use serde::Serialize;
 use crate::fit::batch_render::ShadingContext;
 use crate::fit::config::FitConfig;
 use crate::fit::evaluate::{evaluate, EvalSettings, Evaluation};
-use crate::fit::export::{write_light, write_model, write_render};
+use crate::fit::export::{write_light, write_material_maps, write_model, write_render};
 use crate::fit::fitter::Fit;
 use crate::fit::history::IterationRecord;
 use crate::fit::labels::PixelLabels;
@@ -63,6 +63,20 @@ pub struct ReconstructOptions {
     pub effects_override: Option<Effects>,
     /// Relight at most this many test views (None = all).
     pub eval_test_views: Option<usize>,
+    /// Choose `fit.mode` from the scene's effects ([`auto_training_mode`]) instead of using it.
+    pub auto_mode: bool,
+}
+
+/// The training shading mode the effects call for: Monte Carlo when they need visibility
+/// (shadows or interreflection, which split-sum's unoccluded prefiltered light cannot give),
+/// split-sum otherwise (the fastest). Returns the mode and the reason.
+pub fn auto_training_mode(effects: &Effects) -> (ShadingMode, String) {
+    let needs: Vec<&str> = [(effects.shadows, "shadows"), (effects.interreflection(), "interreflection")].into_iter().filter(|e| e.0).map(|e| e.1).collect();
+    if needs.is_empty() {
+        (ShadingMode::SplitSum, "split-sum (auto): the scene needs no visibility, so the fastest mode is exact enough".into())
+    } else {
+        (ShadingMode::MonteCarlo, format!("Monte Carlo (auto): the scene needs {}, which split-sum cannot simulate", needs.join(" and ")))
+    }
 }
 
 impl ReconstructOptions {
@@ -81,6 +95,7 @@ impl ReconstructOptions {
             idarb_weights: None,
             effects_override: None,
             eval_test_views: None,
+            auto_mode: false,
         }
     }
 }
@@ -161,6 +176,8 @@ pub struct ReconstructReport {
     pub geometry: GeometrySource,
     pub atlas: String,
     pub effects: EffectChoice,
+    /// The training shading mode and why (chosen by the user or from the effects).
+    pub training_mode: String,
     pub prior: String,
     pub config: FitConfig,
     pub evaluation: Evaluation,
@@ -181,10 +198,21 @@ fn atlas_description(a: &Atlas) -> String {
 pub fn run_prepared(prepared: &Prepared, views: Vec<TrainingView>, opts: &ReconstructOptions, prior: &str) -> Result<ReconstructReport> {
     let mut stages = prepared.stage_seconds.clone();
     std::fs::create_dir_all(&opts.out).with_context(|| format!("cannot create the run folder {}", opts.out.display()))?;
-    let mut ctx = shading_context(prepared, &opts.fit);
     let effects = opts.effects_override.unwrap_or(prepared.effects.effects);
+    let mut config = opts.fit.clone();
+    let training_mode = if opts.auto_mode {
+        let (mode, why) = auto_training_mode(&effects);
+        config.mode = mode;
+        why
+    } else {
+        format!("{:?} (set by the run)", config.mode)
+    };
+    if opts.progress {
+        eprintln!("training mode: {training_mode}");
+    }
+    let mut ctx = shading_context(prepared, &config);
     ctx.effects = effects;
-    let mut fit = Fit::new(opts.fit.clone(), Parameters::initial(&opts.fit)?, views, ctx)?;
+    let mut fit = Fit::new(config.clone(), Parameters::initial(&config)?, views, ctx)?;
     let checkpoint_dir = opts.out.join("checkpoint");
     if fit.resume(&checkpoint_dir)? && opts.progress {
         eprintln!("resuming from {} at iteration {}", checkpoint_dir.display(), fit.iteration());
@@ -209,15 +237,18 @@ pub fn run_prepared(prepared: &Prepared, views: Vec<TrainingView>, opts: &Recons
         relight_mode: ShadingMode::MonteCarlo,
         spp: opts.eval_spp,
         supersample: 2,
-        seed: opts.fit.seed,
+        seed: config.seed,
         effects,
-        train_mode: opts.fit.mode,
+        train_mode: config.mode,
         train_view_stride: 10,
         max_test_views: opts.eval_test_views,
     };
     let evaluated = evaluate(&prepared.dataset, &prepared.atlas.mesh, &prepared.bvh, &textures, &light, &test_probes, &settings)?;
     for (name, img) in &evaluated.val_renders {
         write_render(&opts.out.join("renders"), name, img)?;
+    }
+    for maps in &evaluated.val_materials {
+        write_material_maps(&opts.out.join("renders"), maps)?;
     }
     stages.push(("evaluate".to_string(), t.elapsed().as_secs_f64()));
 
@@ -227,8 +258,9 @@ pub fn run_prepared(prepared: &Prepared, views: Vec<TrainingView>, opts: &Recons
         geometry: opts.geometry,
         atlas: atlas_description(&prepared.atlas),
         effects: prepared.effects.clone(),
+        training_mode,
         prior: prior.to_string(),
-        config: opts.fit.clone(),
+        config,
         evaluation: evaluated.metrics,
         stage_seconds: stages,
         history: fit.history.clone(),

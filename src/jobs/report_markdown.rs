@@ -80,6 +80,7 @@ pub fn markdown(r: &ReconstructReport, plots: &[(String, String)]) -> String {
         c.light_res,
         c.seed
     );
+    let _ = writeln!(s, "- training mode: {}", r.training_mode);
     let _ = writeln!(s, "- effects: {}", r.effects.to_string().replace('\n', "\n  "));
     let _ = writeln!(s, "\n## Results (NeRFactor protocol)\n");
     let _ = writeln!(s, "| metric | value |\n|---|---:|");

@@ -1,5 +1,6 @@
 //! What accuracy costs in time: one scene optimised under a sweep of settings (shading mode,
-//! samples per pixel, denoiser, resolution, shadows, iterations, labelled-view count), recording the
+//! samples per pixel, denoiser, resolution, effects — shadows and interreflection bounces —,
+//! iterations, labelled-view count), recording the
 //! optimisation wall time and the relighting PSNR of each; writes `tradeoff.csv`, `tradeoff.png`
 //! (time against PSNR with the Pareto front) and returns the front.
 
@@ -28,8 +29,8 @@ pub struct TradeoffPoint {
     pub iterations: usize,
     /// Training resolution divisor (1 = the dataset's).
     pub downscale: usize,
-    /// Forced shadows (None = the scene's choice).
-    pub shadows: Option<bool>,
+    /// Forced effects (None = the scene's choice), in training and evaluation alike.
+    pub effects: Option<Effects>,
     pub prior: String,
     pub labelled_views: usize,
 }
@@ -45,7 +46,7 @@ pub struct TradeoffResult {
 
 /// The default sweep (≥ 12 points) around a base of `iterations`.
 pub fn default_points(iterations: usize) -> Vec<TradeoffPoint> {
-    let p = |name: &str, group: &str, mode, spp, denoise, it, downscale, shadows, prior: &str, labelled| TradeoffPoint {
+    let p = |name: &str, group: &str, mode, spp, denoise, it, downscale, effects, prior: &str, labelled| TradeoffPoint {
         name: name.into(),
         group: group.into(),
         mode,
@@ -53,26 +54,29 @@ pub fn default_points(iterations: usize) -> Vec<TradeoffPoint> {
         denoise,
         iterations: it,
         downscale,
-        shadows,
+        effects,
         prior: prior.into(),
         labelled_views: labelled,
     };
     use ShadingMode::{MonteCarlo as Mc, SplitSum as Ss};
     let (i, short, long) = (iterations, (iterations / 3).max(1), iterations * 3);
+    let bounces = |b| Some(Effects::with_bounces(b));
+    let no_shadows = Some(Effects { shadows: false, specular: true, indirect_bounces: 0 });
     vec![
         p("split-sum", "split-sum", Ss, 1, false, i, 1, None, "none", 0),
-        p(&format!("split-sum {short} it"), "iterations", Ss, 1, false, short, 1, None, "none", 0),
-        p(&format!("split-sum {long} it"), "iterations", Ss, 1, false, long, 1, None, "none", 0),
         p("split-sum 128²", "resolution", Ss, 1, false, i, 2, None, "none", 0),
         p("MC 1 spp", "MC spp", Mc, 1, false, i, 1, None, "none", 0),
         p("MC 4 spp", "MC spp", Mc, 4, false, i, 1, None, "none", 0),
         p("MC 16 spp", "MC spp", Mc, 16, false, i, 1, None, "none", 0),
         p("MC 4 spp + denoiser", "MC + denoiser", Mc, 4, true, i, 1, None, "none", 0),
-        p("MC 4 spp, no shadows", "effects", Mc, 4, false, i, 1, Some(false), "none", 0),
+        p("MC 4 spp, no shadows", "effects", Mc, 4, false, i, 1, no_shadows, "none", 0),
+        p("MC 4 spp, direct light only", "effects", Mc, 4, false, i, 1, bounces(0), "none", 0),
+        p("MC 4 spp, 1 bounce", "effects", Mc, 4, false, i, 1, bounces(1), "none", 0),
         p("MC 4 spp 128²", "resolution", Mc, 4, false, i, 2, None, "none", 0),
+        p(&format!("MC 4 spp {short} it"), "iterations", Mc, 4, false, short, 1, None, "none", 0),
         p(&format!("MC 4 spp {long} it"), "iterations", Mc, 4, false, long, 1, None, "none", 0),
-        p("split-sum + idarb-sim, 10 views", "labelled views", Ss, 1, false, i, 1, None, "idarb-sim", 10),
-        p("split-sum + idarb-sim, 100 views", "labelled views", Ss, 1, false, i, 1, None, "idarb-sim", 100),
+        p("MC 4 spp + idarb-sim, 10 views", "labelled views", Mc, 4, false, i, 1, None, "idarb-sim", 10),
+        p("MC 4 spp + idarb-sim, 100 views", "labelled views", Mc, 4, false, i, 1, None, "idarb-sim", 100),
     ]
 }
 
@@ -95,9 +99,7 @@ pub fn run(base: &ReconstructOptions, points: &[TradeoffPoint]) -> Result<Vec<Tr
         o.fit.denoise = pt.denoise;
         o.fit.iterations = pt.iterations;
         o.fit.prior_source = source.tag();
-        // Interreflection needs shadows: switching shadows off switches it off too.
-        let e = prep.effects.effects;
-        o.effects_override = pt.shadows.map(|s| Effects { shadows: s, indirect_bounces: if s { e.indirect_bounces } else { 0 }, ..e });
+        o.effects_override = pt.effects;
         eprintln!("trade-off {}/{}: {}", k + 1, points.len(), pt.name);
         let report = run_prepared(prep, views, &o, &description)?;
         let optimise_seconds = report.stage_seconds.iter().find(|s| s.0 == "optimise").map_or(f64::NAN, |s| s.1);
@@ -115,13 +117,13 @@ pub fn run(base: &ReconstructOptions, points: &[TradeoffPoint]) -> Result<Vec<Tr
 }
 
 fn write_outputs(base: &ReconstructOptions, results: &[TradeoffResult]) -> Result<()> {
-    let mut csv = String::from("name,group,mode,spp,denoise,iterations,downscale,shadows,prior,labelled_views,optimise_seconds,relight_psnr_scaled,relight_psnr_raw,albedo_psnr_scaled\n");
+    let mut csv = String::from("name,group,mode,spp,denoise,iterations,downscale,shadows,bounces,prior,labelled_views,optimise_seconds,relight_psnr_scaled,relight_psnr_raw,albedo_psnr_scaled\n");
     let o = |v: Option<f64>| v.map_or(String::new(), |v| format!("{v:.3}"));
     for r in results {
         let p = &r.point;
         let _ = writeln!(
             csv,
-            "\"{}\",{},{:?},{},{},{},{},{},{},{},{:.2},{},{},{}",
+            "\"{}\",{},{:?},{},{},{},{},{},{},{},{},{:.2},{},{},{}",
             p.name,
             p.group,
             p.mode,
@@ -129,7 +131,8 @@ fn write_outputs(base: &ReconstructOptions, results: &[TradeoffResult]) -> Resul
             p.denoise,
             p.iterations,
             p.downscale,
-            p.shadows.map_or("auto".into(), |s| s.to_string()),
+            p.effects.map_or("auto".into(), |e| e.shadows.to_string()),
+            p.effects.map_or("auto".into(), |e| e.indirect_bounces.to_string()),
             p.prior,
             p.labelled_views,
             r.optimise_seconds,

@@ -84,8 +84,10 @@ pub struct McShading {
     samples: Arc<[Stored]>,
     light_res: usize,
     specular: bool,
-    /// Shadow rays traced by `prepare`.
+    /// Shadow rays traced by `prepare` (bounce rays included).
     pub shadow_rays: u64,
+    /// Stored samples whose radiance comes from the object's surface (interreflection).
+    pub surface_samples: usize,
 }
 
 impl McShading {
@@ -123,7 +125,8 @@ impl McShading {
             offsets.push(samples.len() as u32);
             rays += r;
         }
-        McShading { wo_l: wo_l.into(), offsets: offsets.into(), samples: samples.into(), light_res: light.res, specular: settings.effects.specular, shadow_rays: rays }
+        let surface_samples = samples.iter().filter(|s| matches!(s.source, Source::Surface(_))).count();
+        McShading { wo_l: wo_l.into(), offsets: offsets.into(), samples: samples.into(), light_res: light.res, specular: settings.effects.specular, shadow_rays: rays, surface_samples }
     }
 
     pub fn len(&self) -> usize {

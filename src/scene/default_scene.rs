@@ -20,8 +20,10 @@ use crate::scene::synthetic::{write_nerfactor, SyntheticScene};
 use crate::scene::{Camera, Probe};
 
 /// Bump when the scene or its rendering changes, so stale caches are rebuilt.
-pub const VERSION: u32 = 1;
+pub const VERSION: u32 = 2;
 pub const RESOLUTION: usize = 128;
+/// Indirect bounces of the dataset's renders (beyond what a reconstruction simulates by default).
+pub const DATA_BOUNCES: u32 = 5;
 /// The NeRF hotdog cameras' field of view.
 pub const FOV_X: f32 = 0.691_111_2;
 
@@ -141,7 +143,8 @@ pub fn ensure_dataset(dir: &Path) -> Result<()> {
             Probe::load(&probe_dir.join(format!("{name}.hdr")), 1.0)
         })
         .collect::<Result<Vec<_>>>()?;
-    let settings = RenderSettings { mode: ShadingMode::MonteCarlo, spp: 64, supersample: 2, seed: 7, effects: Effects::DIRECT };
+    // Full light transport (shadows, specular, interreflection), as a photographed object has.
+    let settings = RenderSettings { mode: ShadingMode::MonteCarlo, spp: 64, supersample: 2, seed: 7, effects: Effects::with_bounces(DATA_BOUNCES) };
     let name = dir.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_else(|| "default".into());
     let partial = dir.with_file_name(format!("{name}.partial-{}", std::process::id()));
     if partial.exists() {

@@ -303,12 +303,12 @@ mod tests {
             data = "{shared}/data/x"
             train_probe = { file = "/abs/probe.hdr", strength = 3 }
             ground_truth = { folder = "gt" }
-            effects = { shadows = "on", specular = "off" }
+            effects = { shadows = "on", specular = "off", interreflection = "on", bounces = 2 }
         "#;
         let spec = SceneSpec::parse(text, Path::new("/specs"), "x").expect("test setup");
         assert_eq!(spec.data_dir, shared_dir().join("data/x"));
         assert_eq!(spec.train_probe, Some(ProbeFile { path: "/abs/probe.hdr".into(), strength: 3.0 }));
-        assert_eq!(spec.effects, EffectSwitches { shadows: Switch::On, specular: Switch::Off, ..Default::default() });
+        assert_eq!(spec.effects, EffectSwitches { shadows: Switch::On, specular: Switch::Off, interreflection: Switch::On, bounces: Some(2) });
         let moved = spec.with_data_dir("/elsewhere");
         assert_eq!(moved.gt_dir(), Some(PathBuf::from("/elsewhere/gt")));
     }
