@@ -260,10 +260,10 @@ VIEWS = {"above": dict(azim=45.0, elev=55.0, dist=3.2),
          "side": dict(azim=-120.0, elev=14.0, dist=3.3)}
 
 
-def bsdf_dict(mat, model="principled"):
+def bsdf_dict(mat, model="principled", scene_dir=SCENE_DIR):
     bc = mat["base_color"]
     if isinstance(bc, str):
-        base = {"type": "bitmap", "filename": os.path.join(SCENE_DIR, bc), "raw": False,
+        base = {"type": "bitmap", "filename": os.path.join(scene_dir, bc), "raw": False,
                 "filter_type": "bilinear", "wrap_mode": "repeat"}
     else:
         base = {"type": "rgb", "value": list(bc)}
@@ -276,25 +276,40 @@ def bsdf_dict(mat, model="principled"):
         "anisotropic": 0.0, "sheen": 0.0, "clearcoat": 0.0}}
 
 
-def sensor_dict(c2w, spp):
+def sensor_dict(c2w, spp, res=RES, sampler="ldsampler"):
     to_world = c2w @ np.diag([-1.0, 1.0, -1.0, 1.0])   # OpenGL camera -> Mitsuba camera
     return {"type": "perspective", "fov": float(np.degrees(FOV_X)), "fov_axis": "x",
             "near_clip": 0.01, "far_clip": 100.0, "to_world": mi.ScalarTransform4f(to_world.tolist()),
-            "sampler": {"type": "ldsampler", "sample_count": spp},
-            "film": {"type": "hdrfilm", "width": RES, "height": RES, "pixel_format": "rgba",
+            "sampler": {"type": sampler, "sample_count": spp},
+            "film": {"type": "hdrfilm", "width": res, "height": res, "pixel_format": "rgba",
                      "rfilter": {"type": "box"}}}
 
 
-def scene_dict(c2ws, integrator, spp, model="principled"):
+def scene_dict(c2ws, integrator, spp, model="principled", objects=None, scene_dir=SCENE_DIR, res=RES,
+               strength=PROBE_STRENGTH, sampler="ldsampler"):
+    """The Mitsuba scene: the converted probe (always scene/city_mitsuba.exr) scaled by `strength`,
+    one sensor per view, `objects` (default this scene's OBJECTS) with meshes and textures under
+    `scene_dir`."""
     d = {"type": "scene", "integrator": integrator,
          "emitter": {"type": "envmap", "filename": os.path.join(SCENE_DIR, PROBE + "_mitsuba.exr"),
-                     "scale": PROBE_STRENGTH, "to_world": mi.ScalarTransform4f(EMITTER_TO_WORLD.tolist())}}
+                     "scale": strength, "to_world": mi.ScalarTransform4f(EMITTER_TO_WORLD.tolist())}}
     for name, c2w in c2ws.items():
-        d["sensor_" + name] = sensor_dict(c2w, spp)
-    for o in OBJECTS:
-        d[o["name"]] = {"type": "obj", "filename": os.path.join(SCENE_DIR, o["mesh"]),
-                        "face_normals": False, "bsdf": bsdf_dict(o["material"], model)}
+        d["sensor_" + name] = sensor_dict(c2w, spp, res, sampler)
+    for o in (OBJECTS if objects is None else objects):
+        d[o["name"]] = {"type": "obj", "filename": os.path.join(scene_dir, o["mesh"]),
+                        "face_normals": False, "bsdf": bsdf_dict(o["material"], model, scene_dir)}
     return d
+
+
+def material_json(m):
+    """A material as scene.json describes it (the Mitsuba principled parameters used)."""
+    bc = m["base_color"]
+    base = ({"texture": bc, "color_space": "srgb", "filter": "bilinear", "wrap": "repeat",
+             "uv_convention": "OBJ: vt v = 0 is the bottom row of the image; texel (i,j) centre at ((j+0.5)/W, 1-(i+0.5)/H)"}
+            if isinstance(bc, str) else {"constant_linear_rgb": list(bc)})
+    return {"type": "mitsuba_principled", "two_sided": True, "base_color": base,
+            "roughness": m["roughness"], "metallic": m["metallic"], "specular": 0.5,
+            "f0_dielectric": 0.04, "ggx_alpha": "roughness^2"}
 
 
 def psnr(a, b):
@@ -303,7 +318,7 @@ def psnr(a, b):
 
 # ---------------------------------------------------------------- checks
 
-def check_envmap(scene, probe):
+def check_envmap(scene, probe, strength=PROBE_STRENGTH):
     em = scene.emitters()[0]
     H, W, _ = probe.shape
     names, dirs = [], []
@@ -324,7 +339,7 @@ def check_envmap(scene, probe):
     si.wi = mi.Vector3f(*(-dirs_all.T.astype(np.float32)))
     got = np.array(em.eval(si), dtype=np.float64)
     got = got.T if got.shape[0] == 3 else got
-    want = blender_lookup(probe, dirs_all) * PROBE_STRENGTH
+    want = blender_lookup(probe, dirs_all) * strength
     rel = np.abs(got - want).max(axis=1) / np.maximum(want.max(axis=1), 1e-6)
     print("envmap orientation check (Mitsuba emitter.eval vs Blender lookup formula):")
     for k, n in enumerate(names):
@@ -338,23 +353,26 @@ def check_envmap(scene, probe):
     return float(rel.max())
 
 
-def check_camera(scene, c2ws, alphas):
+def check_camera(scene, c2ws, alphas, pts=None, res=RES):
+    """`pts`: (label, world point) pairs to project (default: this scene's sphere centres and two
+    box corners)."""
     print("camera check (NeRF projection in numpy vs Mitsuba sensor rays):")
     worst = 0.0
-    for vi, (name, c2w) in enumerate(c2ws.items()):
-        sensor = scene.sensors()[vi]
+    if pts is None:
         pts = [("textured_sphere centre", SPHERE["centre"]), ("metal_sphere centre", METAL["centre"]),
                ("box corner (+x,-y,top)", (0.8, -0.6, 0.15)), ("box corner (-x,+y,top)", (-0.8, 0.6, 0.15))]
+    for vi, (name, c2w) in enumerate(c2ws.items()):
+        sensor = scene.sensors()[vi]
         for label, p in pts:
-            px = nerf_project(c2w, FOV_X, RES, RES, np.asarray(p, dtype=np.float64))
-            ray, _ = sensor.sample_ray(0.0, 0.5, mi.Point2f(float(px[0] / RES), float(px[1] / RES)), mi.Point2f(0.5, 0.5))
+            px = nerf_project(c2w, FOV_X, res, res, np.asarray(p, dtype=np.float64))
+            ray, _ = sensor.sample_ray(0.0, 0.5, mi.Point2f(float(px[0] / res), float(px[1] / res)), mi.Point2f(0.5, 0.5))
             o = np.array(ray.o).ravel()
             d = np.array(ray.d).ravel()
             to_p = np.asarray(p) - o
             ang = np.arctan2(np.linalg.norm(np.cross(d, to_p)), d @ to_p)   # stable for tiny angles
             worst = max(worst, ang)
             col, row = int(px[0]), int(px[1])
-            a = alphas[name][row, col] if 0 <= row < RES and 0 <= col < RES else float("nan")
+            a = alphas[name][row, col] if 0 <= row < res and 0 <= col < res else float("nan")
             print("  view %-5s %-24s -> pixel x=%.2f y=%.2f (col %d, row %d) alpha there %.3f; "
                   "Mitsuba ray through that film point misses the point by %.2e rad"
                   % (name, label, px[0], px[1], col, row, a, ang))
@@ -405,13 +423,13 @@ def check_texture_uv(scene, c2w, tex_lin):
     assert err < 2e-3, "texture orientation mismatch"
     return float(err)
 
-def check_project_brdf(project_brdf):
+def check_project_brdf(project_brdf, objects=None):
     """The Python BSDF vs an independent NumPy transcription of DESIGN.md, and its sampling
     weights vs a cosine-sampled estimate of the same integral (unbiasedness of sample())."""
     rng = np.random.default_rng(3)
     ctx = mi.BSDFContext()
     worst_eval, worst_sample = 0.0, 0.0
-    for o in OBJECTS:
+    for o in (OBJECTS if objects is None else objects):
         m = o["material"]
         kd = [0.6, 0.3, 0.2] if isinstance(m["base_color"], str) else m["base_color"]
         b = mi.load_dict({"type": "project_brdf", "base_color": {"type": "rgb", "value": list(kd)},
@@ -453,9 +471,11 @@ def check_project_brdf(project_brdf):
 
 # ---------------------------------------------------------------- main
 
-def render_view(scene, idx, spp_total, seed_base):
+def render_view(scene, idx, spp_total, seed_base, res=RES, halves=False):
+    """Average of passes of PASS_SPP spp (seeds seed_base + k): (image, spp, estimated PSNR of the
+    image vs the converged one), plus the two half averages (even / odd passes) if `halves`."""
     passes = max(2, spp_total // PASS_SPP)
-    acc = [np.zeros((RES, RES, 4)), np.zeros((RES, RES, 4))]
+    acc = [np.zeros((res, res, 4)), np.zeros((res, res, 4))]
     for k in range(passes):
         img = np.array(mi.render(scene, sensor=idx, seed=seed_base + k, spp=PASS_SPP), dtype=np.float64)
         acc[k % 2] += img
@@ -463,6 +483,8 @@ def render_view(scene, idx, spp_total, seed_base):
     full = (acc[0] + acc[1]) / passes
     # the error of the mean of all passes vs the converged image: MSE(A,B)/4 -> +6.02 dB
     noise_psnr = psnr(half[0][..., :3], half[1][..., :3]) + 10 * np.log10(4)
+    if halves:
+        return full, passes * PASS_SPP, noise_psnr, half
     return full, passes * PASS_SPP, noise_psnr
 
 
@@ -566,20 +588,11 @@ def main():
         print("aov_above.exr written (%.1f s)" % aov_info["seconds"])
 
     # 4. scene.json
-    def mat_json(m):
-        bc = m["base_color"]
-        base = ({"texture": bc, "color_space": "srgb", "filter": "bilinear", "wrap": "repeat",
-                 "uv_convention": "OBJ: vt v = 0 is the bottom row of the image; texel (i,j) centre at ((j+0.5)/W, 1-(i+0.5)/H)"}
-                if isinstance(bc, str) else {"constant_linear_rgb": list(bc)})
-        return {"type": "mitsuba_principled", "two_sided": True, "base_color": base,
-                "roughness": m["roughness"], "metallic": m["metallic"], "specular": 0.5,
-                "f0_dielectric": 0.04, "ggx_alpha": "roughness^2"}
-
     objs = []
     for o in OBJECTS:
         e = {"name": o["name"], "mesh": o["mesh"], "vertices": mesh_stats[o["name"]][0],
              "triangles": mesh_stats[o["name"]][1], "shading": "smooth (vn)" if "radius" in o else "flat (vn per face)",
-             "centre": list(o["centre"]), "material": mat_json(o["material"])}
+             "centre": list(o["centre"]), "material": material_json(o["material"])}
         if "radius" in o:
             e["radius"] = o["radius"]
         else:
