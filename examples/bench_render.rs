@@ -63,19 +63,19 @@ fn main() -> anyhow::Result<()> {
     let (ss, lut) = light.split_sum();
     let s_ms = time_ms(9, || splitsum::shade(&gbuf, &params, ss, lut, Effects::DIRECT));
     println!("| split-sum shading | {s_ms:.2} | - |");
+    let scene = montecarlo::TraceScene { mesh: &mesh, bvh: &bvh, materials: &mesh };
+    let no_shadows = Effects { shadows: false, specular: true, indirect_bounces: 0 };
+    let effects = [("shadows off", no_shadows), ("shadows on", Effects::DIRECT), ("1 bounce", Effects::with_bounces(1)), ("3 bounces", Effects::with_bounces(3))];
     for spp in [1u32, 4, 16] {
-        for shadows in [false, true] {
-            let settings = McSettings { spp, seed: 1, effects: Effects { shadows, specular: true, indirect_bounces: 0 }, ray_epsilon: ray_epsilon(&mesh) };
+        for (name, effects) in effects {
+            let settings = McSettings { spp, seed: 1, effects, ray_epsilon: ray_epsilon(&mesh) };
             let runs = if spp == 16 { 3 } else { 5 };
             let mut rays = 0;
-            let ms = time_ms(runs, || {
-                let b = montecarlo::shade(&gbuf, &params, light.sampler(), &montecarlo::TraceScene { mesh: &mesh, bvh: &bvh, materials: &mesh }, &settings, 0);
-                rays = b.shadow_rays;
-            });
-            let mrays = if shadows { format!("{:.2}", rays as f64 / ms / 1e3) } else { "-".into() };
-            println!("| MC {spp:>2} spp, shadows {:<3} | {ms:.2} | {mrays} |", if shadows { "on" } else { "off" });
+            let ms = time_ms(runs, || rays = montecarlo::shade(&gbuf, &params, light.sampler(), &scene, &settings, 0).shadow_rays);
+            let mrays = if effects.shadows { format!("{:.2}", rays as f64 / ms / 1e3) } else { "-".into() };
+            println!("| MC {spp:>2} spp, {name} | {ms:.2} | {mrays} |");
         }
     }
-    println!("\nMrays/s for MC counts shadow rays only (2 per sample: light and BSDF strategy).");
+    println!("\nMrays/s for MC counts the rays after the primary ones: shadow rays (one per strategy and sample) and, with bounces, the rays of the paths' later vertices.");
     Ok(())
 }

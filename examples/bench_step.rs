@@ -1,8 +1,8 @@
 //! Time of one gradient step (render + backward + Adam; one 256² view; kd/ks textures and the
-//! light as parameters) for split-sum and for Monte Carlo at 4 and 16 spp, and beside it, measured
-//! in the same run, the same step in Mitsuba 3 (`llvm_ad_rgb`, `prb`) on the same mesh, textures,
-//! light and resolution (tools/mitsuba/gradient_step.py; skipped with a note when Mitsuba or its
-//! LLVM is missing).
+//! light as parameters) for split-sum and for Monte Carlo at 4 and 16 spp, direct light and with
+//! 3 interreflection bounces, and beside it, measured in the same run, the same step in Mitsuba 3
+//! (`llvm_ad_rgb`, `prb` at max_depth 2 and 5) on the same mesh, textures, light and resolution
+//! (tools/mitsuba/gradient_step.py; skipped with a note when Mitsuba or its LLVM is missing).
 //!
 //! cargo run --release --example bench_step [-- --scene nerfactor_hotdog --steps 10 --no-mitsuba]
 
@@ -21,6 +21,7 @@ use reconstruct::jobs::reconstruct::{prepare, shading_context, GeometrySource, P
 use reconstruct::jobs::render::ground_truth_mesh;
 use reconstruct::light::CubeMap;
 use reconstruct::material::texture_maps::MaterialTextures;
+use reconstruct::render::effects::Effects;
 use reconstruct::render::view::ShadingMode;
 
 #[global_allocator]
@@ -52,7 +53,7 @@ fn main() -> Result<()> {
     // One view, the first training view, as the Mitsuba script uses.
     let view = prepared.views[0].clone();
     println!(
-        "scene {}: view {} ({}×{}, {} covered pixels), textures {}², light 6×{}², effects: shadows {}, specular {}",
+        "scene {}: view {} ({}×{}, {} covered pixels), textures {}², light 6×{}², the scene's effects: {}",
         prepared.spec.name,
         view.name,
         view.camera.width,
@@ -60,22 +61,26 @@ fn main() -> Result<()> {
         view.len(),
         args.texture_res,
         args.light_res,
-        prepared.effects.effects.shadows,
-        prepared.effects.effects.specular
+        prepared.effects.to_string().lines().next().unwrap_or_default()
     );
     // Both sides start from the same values: ground-truth materials baked into the atlas and the
     // training probe as the light.
     let textures = MaterialTextures::bake_from(&ground_truth_mesh(&prepared.spec)?, &prepared.atlas, args.texture_res)?;
     let light = CubeMap::from_latlong(&prepared.spec.load_train_probe()?.radiance_image(), args.light_res);
-    let settings: Vec<(String, ShadingMode, u32)> = vec![
-        ("split-sum".into(), ShadingMode::SplitSum, 0),
-        ("MC 4 spp".into(), ShadingMode::MonteCarlo, 4),
-        ("MC 16 spp".into(), ShadingMode::MonteCarlo, 16),
+    // (name, mode, spp, effects, Mitsuba max_depth of the same light transport)
+    let bounced = Effects::with_bounces(3);
+    let settings: Vec<(String, ShadingMode, u32, Effects, Option<u32>)> = vec![
+        ("split-sum".into(), ShadingMode::SplitSum, 0, Effects::DIRECT, None),
+        ("MC 4 spp, direct light".into(), ShadingMode::MonteCarlo, 4, Effects::DIRECT, Some(2)),
+        ("MC 16 spp, direct light".into(), ShadingMode::MonteCarlo, 16, Effects::DIRECT, Some(2)),
+        ("MC 4 spp, 3 bounces".into(), ShadingMode::MonteCarlo, 4, bounced, Some(5)),
+        ("MC 16 spp, 3 bounces".into(), ShadingMode::MonteCarlo, 16, bounced, Some(5)),
     ];
     let mut rows = Vec::new();
-    for (name, mode, spp) in settings {
+    for (name, mode, spp, effects, depth) in settings {
         let config = FitConfig { mode, spp: spp.max(1), batch: 1, iterations: args.steps + 1, texture_res: args.texture_res, light_res: args.light_res, checkpoint_every: 0, ..FitConfig::default() };
-        let ctx = shading_context(&prepared, &config);
+        let mut ctx = shading_context(&prepared, &config);
+        ctx.effects = effects;
         let mut fit = Fit::new(config.clone(), Parameters::from_values(&textures, &light)?, vec![view.clone()], ctx)?;
         let mut times = Vec::new();
         for k in 0..=args.steps {
@@ -92,21 +97,24 @@ fn main() -> Result<()> {
             }
         }
         if !times.is_empty() {
-            rows.push((name, median(times)));
+            rows.push((name, spp, depth, median(times)));
         }
     }
     let mitsuba = if args.no_mitsuba { None } else { run_mitsuba(&prepared, &textures, &light, &args).map_err(|e| println!("Mitsuba: skipped ({e:#})")).ok() };
     println!("\n| step (render + backward + Adam), 1 view | reconstruct (s) | Mitsuba 3 llvm_ad_rgb prb (s) |\n|---|---:|---:|");
-    for (name, secs) in &rows {
-        let m = mitsuba.as_ref().and_then(|m: &serde_json::Value| {
-            let spp = if name.starts_with("MC 4") { "4" } else if name.starts_with("MC 16") { "16" } else { return None };
-            m["spp"][spp]["median_s"].as_f64()
-        });
-        println!("| {name} | {secs:.3} | {} |", m.map_or("–".into(), |v| format!("{v:.3}")));
+    let mitsuba_step = |depth: u32, spp: u32, key: &str| mitsuba.as_ref().and_then(|m: &serde_json::Value| m["max_depth"][depth.to_string()][spp.to_string()][key].as_f64());
+    for (name, spp, depth, secs) in &rows {
+        let m = depth.and_then(|d| mitsuba_step(d, *spp, "median_s"));
+        let label = depth.map_or(String::new(), |d| format!(" (max_depth {d})"));
+        println!("| {name} | {secs:.3} | {}{label} |", m.map_or("–".into(), |v| format!("{v:.3}")));
     }
     if let Some(m) = &mitsuba {
-        println!("\nMitsuba {} ({}, {} threads); first step incl. JIT: 4 spp {:.2} s, 16 spp {:.2} s",
-            m["mitsuba_version"].as_str().unwrap_or("?"), m["variant"].as_str().unwrap_or("?"), m["threads"], m["spp"]["4"]["first_s"].as_f64().unwrap_or(f64::NAN), m["spp"]["16"]["first_s"].as_f64().unwrap_or(f64::NAN));
+        println!("\nMitsuba {} ({}, {} threads); first step incl. JIT (s):", m["mitsuba_version"].as_str().unwrap_or("?"), m["variant"].as_str().unwrap_or("?"), m["threads"]);
+        for (_, spp, depth, _) in &rows {
+            if let Some(d) = depth {
+                println!("  max_depth {d}, {spp} spp: {:.2}", mitsuba_step(*d, *spp, "first_s").unwrap_or(f64::NAN));
+            }
+        }
     }
     Ok(())
 }

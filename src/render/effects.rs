@@ -231,7 +231,7 @@ pub fn choose(switches: EffectSwitches, mesh: &Mesh, bvh: &Bvh, views: &[GBuffer
         }
         Switch::Auto => {
             let known: Option<&dyn MaterialField> = if materials_known { Some(mesh) } else { None };
-            let share = interreflection_share(mesh, bvh, known, views, 4000, 2);
+            let share = interreflection_share(mesh, bvh, known, views, 4000, 1);
             let on = share >= INTERREFLECTION_THRESHOLD;
             reasons.push(format!(
                 "interreflection {} (auto): up to {:.1}% of the light on the visible surface is reflected by the object itself ({}; threshold {:.0}%)",
