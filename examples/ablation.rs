@@ -2,7 +2,7 @@
 //! one scene with the same seed, budget and settings, plus the prior-quality sweep; writes
 //! ablation.md, ablation.json and prior_quality.png.
 //!
-//! cargo run --release --example ablation -- [--scene nerfactor_hotdog] [--iterations 1500]
+//! cargo run --release --example ablation -- [--scene nerfactor_hotdog] [--iterations 1000]
 //!     [--mode auto|split-sum|mc] [--sweep 0.5,1.5,2] [--labels DIR] [--idarb] [--out DIR]
 
 use std::path::PathBuf;
@@ -22,7 +22,8 @@ static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
 struct Args {
     #[arg(long, default_value = "nerfactor_hotdog")]
     scene: String,
-    #[arg(long, default_value_t = 1500)]
+    /// The default run's budget, so the `none` row is the default command.
+    #[arg(long, default_value_t = 1000)]
     iterations: usize,
     /// auto (Monte Carlo when the scene needs shadows or interreflection), split-sum or mc.
     #[arg(long, default_value = "auto")]
@@ -36,7 +37,8 @@ struct Args {
     /// Also run --prior idarb (cached labels or the network with IDARB_WEIGHTS).
     #[arg(long)]
     idarb: bool,
-    #[arg(long, default_value_t = 8)]
+    /// Monte Carlo samples of the evaluation renders (the default command's).
+    #[arg(long, default_value_t = 16)]
     eval_spp: u32,
     #[arg(long)]
     out: Option<PathBuf>,

@@ -2,7 +2,7 @@
 //! resolution, effects (shadows, interreflection bounces), iterations and labelled-view count on one scene; writes tradeoff.csv and
 //! tradeoff.png (Pareto front marked) and prints the front.
 //!
-//! cargo run --release --example tradeoff -- [--scene nerfactor_hotdog] [--iterations 300] [--out DIR]
+//! cargo run --release --example tradeoff -- [--scene nerfactor_hotdog] [--iterations 200] [--out DIR]
 
 use std::path::PathBuf;
 
@@ -20,7 +20,7 @@ struct Args {
     #[arg(long, default_value = "nerfactor_hotdog")]
     scene: String,
     /// Base iteration count (the sweep also runs ⅓× and 3×).
-    #[arg(long, default_value_t = 300)]
+    #[arg(long, default_value_t = 200)]
     iterations: usize,
     /// Test views relit per point (all 8 probes each).
     #[arg(long, default_value_t = 2)]

@@ -144,6 +144,9 @@ enum Command {
         /// Shading during optimisation.
         #[arg(long, value_enum, default_value = "auto")]
         mode: TrainMode,
+        /// Monte Carlo samples per pixel and strategy (fewer than a full run's 16: a miniature).
+        #[arg(long, default_value_t = 4)]
+        spp: u32,
         /// idarb-sim levels of a prior-quality sweep (e.g. 0,0.5,1,2); none by default.
         #[arg(long, value_delimiter = ',')]
         sweep: Vec<f64>,
@@ -214,10 +217,10 @@ fn main() -> Result<()> {
     let cli = Cli::parse();
     let Some(command) = cli.command else { return reconstruct(cli.reconstruct) };
     match command {
-        Command::Ablation { scene, iterations, mode, sweep, eval_spp, out } => {
+        Command::Ablation { scene, iterations, mode, spp, sweep, eval_spp, out } => {
             let out = out.unwrap_or_else(|| ablation::default_out(&scene));
             let fixed_mode = mode.fixed();
-            let fit = FitConfig { mode: fixed_mode.unwrap_or(ShadingMode::SplitSum), iterations, ..FitConfig::default() };
+            let fit = FitConfig { mode: fixed_mode.unwrap_or(ShadingMode::SplitSum), iterations, spp, ..FitConfig::default() };
             let base = ReconstructOptions { auto_mode: fixed_mode.is_none(), ..ReconstructOptions::new(&scene, fit, eval_spp, out.clone()) };
             let sources = vec![PriorSource::None, PriorSource::IdarbSim(1.0), PriorSource::Oracle];
             let report = ablation::run(&ablation::AblationOptions { base, sources, sweep })?;

@@ -162,6 +162,13 @@ pub fn interreflection_share(mesh: &Mesh, bvh: &Bvh, materials: Option<&dyn Mate
     hits.iter().flatten().map(albedo).sum::<f32>() / hits.len().max(1) as f32
 }
 
+/// A switch the scene set explicitly: its value, with the reason recorded.
+fn set_by_scene(effect: &str, switch: Switch, reasons: &mut Vec<String>) -> bool {
+    let on = switch == Switch::On;
+    reasons.push(format!("{effect} {}: set by the scene", if on { "on" } else { "off" }));
+    on
+}
+
 /// Resolve `auto` switches by inspecting the geometry and materials (ground truth when known).
 /// With unknown materials (`materials_known` false) specular stays on and interreflection is
 /// judged with white occluders: neither can be ruled out.
@@ -169,14 +176,7 @@ pub fn interreflection_share(mesh: &Mesh, bvh: &Bvh, materials: Option<&dyn Mate
 pub fn choose(switches: EffectSwitches, mesh: &Mesh, bvh: &Bvh, views: &[GBuffer], materials_known: bool) -> EffectChoice {
     let mut reasons = Vec::new();
     let shadows = match switches.shadows {
-        Switch::On => {
-            reasons.push("shadows on: set by the scene".into());
-            true
-        }
-        Switch::Off => {
-            reasons.push("shadows off: set by the scene".into());
-            false
-        }
+        Switch::On | Switch::Off => set_by_scene("shadows", switches.shadows, &mut reasons),
         Switch::Auto => {
             let occ = visible_self_occlusion(bvh, views, 4000, 1);
             let on = occ >= SHADOW_OCCLUSION_THRESHOLD;
@@ -190,14 +190,7 @@ pub fn choose(switches: EffectSwitches, mesh: &Mesh, bvh: &Bvh, views: &[GBuffer
         }
     };
     let specular = match switches.specular {
-        Switch::On => {
-            reasons.push("specular on: set by the scene".into());
-            true
-        }
-        Switch::Off => {
-            reasons.push("specular off: set by the scene".into());
-            false
-        }
+        Switch::On | Switch::Off => set_by_scene("specular", switches.specular, &mut reasons),
         Switch::Auto if !materials_known => {
             reasons.push("specular on (auto): materials are unknown, so glossiness cannot be ruled out".into());
             true
@@ -221,14 +214,7 @@ pub fn choose(switches: EffectSwitches, mesh: &Mesh, bvh: &Bvh, views: &[GBuffer
         }
     };
     let interreflection = match switches.interreflection {
-        Switch::On => {
-            reasons.push("interreflection on: set by the scene".into());
-            true
-        }
-        Switch::Off => {
-            reasons.push("interreflection off: set by the scene".into());
-            false
-        }
+        Switch::On | Switch::Off => set_by_scene("interreflection", switches.interreflection, &mut reasons),
         Switch::Auto => {
             let known: Option<&dyn MaterialField> = if materials_known { Some(mesh) } else { None };
             let share = interreflection_share(mesh, bvh, known, views, 4000, 1);
