@@ -73,7 +73,8 @@ impl LightSampler {
     /// Density P_k·|d|³/A_k at texel k and face coordinates (s, t).
     fn density(&self, k: usize, s: f32, t: f32) -> f32 {
         let plane_area = (2.0 / self.map.res as f32).powi(2);
-        let jacobian = (1.0 + s * s + t * t).powf(1.5);
+        let q = 1.0 + s * s + t * t;
+        let jacobian = q * q.sqrt(); // q^1.5 without powf (a hot path)
         self.prob[k] * jacobian / plane_area
     }
 
