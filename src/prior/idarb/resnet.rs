@@ -2,7 +2,8 @@
 use candle_core::{Module, Result, Tensor};
 use super::conv::{conv2d, Conv2d};
 use super::group_norm::{group_norm, GroupNorm};
-use candle_nn::{linear, Conv2dConfig, Linear, VarBuilder};
+use super::linear::{linear, Linear};
+use candle_nn::{Conv2dConfig, VarBuilder};
 
 fn conv3x3(vb: VarBuilder, i: usize, o: usize, stride: usize, padding: usize) -> Result<Conv2d> {
     conv2d(i, o, 3, Conv2dConfig { padding, stride, ..Default::default() }, vb)

@@ -6,9 +6,11 @@
 //! tokens, CaPE on q and k), `attn2` text cross-attention, then a GEGLU feed-forward with erf GELU.
 use super::attention::Attention;
 use super::cape::apply_cape;
-use candle_core::{Module, Result, Tensor, D};
+use super::geglu::geglu;
+use super::linear::{linear, Linear};
+use candle_core::{Module, Result, Tensor};
 use super::group_norm::{group_norm, GroupNorm};
-use candle_nn::{layer_norm, linear, LayerNorm, Linear, VarBuilder};
+use candle_nn::{layer_norm, LayerNorm, VarBuilder};
 
 /// LayerNorm eps of `norm1`, `norm_mv`, `norm2`, `norm3` (torch default).
 const LAYER_NORM_EPS: f64 = 1e-5;
@@ -38,11 +40,7 @@ impl FeedForwardGeglu {
     }
 
     fn forward(&self, x: &Tensor) -> Result<Tensor> {
-        let h = self.proj.forward(x)?;
-        let half = h.dim(D::Minus1)? / 2;
-        // value first, gate second (diffusers GEGLU chunk order); exact erf GELU, not tanh
-        let gated = (h.narrow(D::Minus1, 0, half)? * h.narrow(D::Minus1, half, half)?.gelu_erf()?)?;
-        self.out.forward(&gated)
+        self.out.forward(&geglu(&self.proj.forward(x)?)?)
     }
 }
 
