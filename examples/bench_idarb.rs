@@ -10,6 +10,10 @@ use reconstruct::prior::idarb::unet_dr2d_condition::{unet_forward_flops, UNetDR2
 use std::process::Command;
 use std::time::Instant;
 
+// The allocator of the `reconstruct` binary, which runs this network for `--prior idarb`.
+#[global_allocator]
+static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
+
 fn arg<T: std::str::FromStr>(name: &str, default: T) -> T {
     let args: Vec<String> = std::env::args().collect();
     args.iter().position(|a| a == name).and_then(|i| args.get(i + 1)).and_then(|v| v.parse().ok()).unwrap_or(default)

@@ -1,38 +1,71 @@
 //! Multi-head attention as diffusers' `Attention` (`to_q`, `to_k`, `to_v`, `to_out.0`). The core
 //! softmax(q kᵀ · scale) v is one CPU kernel (inference only) that reads each head straight out
-//! of the projections' [B, L, H·D] layout and works through blocks of queries with a reused
-//! per-thread score buffer: no head permutes, no score tensors (4 views at 512² would need
-//! ~15 GiB of them per layer), no fresh pages to fault in.
+//! of the projections' [rows, L, H·D] layout, lets a row attend jointly to the keys of several
+//! rows where they lie (IDArb's cross-domain and cross-view attention, without regrouping
+//! copies), and works through blocks of queries with a reused per-thread score buffer: no head
+//! permutes, no score tensors (4 views at 512² would need ~15 GiB of them per layer), no fresh
+//! pages to fault in.
 use super::cpu_kernel::contiguous_f32;
 use super::linear::{linear, linear_no_bias, Linear};
 use super::matmul::{gemm, MatMut, MatRef};
 use super::scratch::Scratch;
-use super::softmax::exp_rows;
+use super::softmax::exp_key_major;
 use candle_core::{bail, CpuStorage, CustomOp3, Layout, Module, Result, Shape, Tensor};
 use candle_nn::VarBuilder;
 use rayon::prelude::*;
 
-/// Most queries per block: enough rows for the score product to run at full speed, few enough
-/// that a block's scores (× keys) stay a few MiB.
+/// Most queries per block: enough for the score product to run at full speed.
 const MAX_QUERY_BLOCK: usize = 128;
+/// Queries per block come in multiples of this (the softmax's vector width).
+const QUERY_LANES: usize = 16;
+/// Target size of one block's scores, in bytes: about what stays in a core's L2 cache between
+/// the score product, the softmax and the weighted sum.
+const SCORE_BLOCK_BYTES: usize = 512 << 10;
 
-/// softmax(q kᵀ · scale) v per head for q [B, Lq, H·D] and k, v [B, Lk, H·D]; heads are
-/// contiguous channel blocks (diffusers' `head_to_batch_dim`). Returns [B, Lq, H·D].
-pub fn attention(q: &Tensor, k: &Tensor, v: &Tensor, heads: usize, scale: f64) -> Result<Tensor> {
-    let (b, lq, _) = q.dims3()?;
-    let block = MAX_QUERY_BLOCK.min(lq.div_ceil((4 * rayon::current_num_threads()).div_ceil(b)).max(1));
-    attention_in_blocks(q, k, v, heads, scale, block)
+/// Which rows' keys a query row attends to: rows come in groups of `blocks · stride`, and row r
+/// attends to the `blocks` rows of its group that share `r mod stride`, their keys concatenated
+/// in order. With rows ordered (object, view, domain): cross-domain attention is
+/// `{ blocks: domains, stride: 1 }`, cross-view attention `{ blocks: views, stride: domains }`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct JointRows {
+    pub blocks: usize,
+    pub stride: usize,
+}
+
+impl JointRows {
+    /// Each row attends to its own keys only.
+    pub const OWN: JointRows = JointRows { blocks: 1, stride: 1 };
+
+    /// The first key row of row `r`'s group and the spacing of its key rows.
+    fn first_key_row(&self, r: usize) -> usize {
+        let group = self.blocks * self.stride;
+        (r / group) * group + r % self.stride
+    }
+}
+
+/// softmax(q kᵀ · scale) v per head for q [R, Lq, H·D] and k, v [R, Lk, H·D], row r attending to
+/// the keys of the rows `joint` names; heads are contiguous channel blocks (diffusers'
+/// `head_to_batch_dim`). Returns [R, Lq, H·D].
+pub fn attention(q: &Tensor, k: &Tensor, v: &Tensor, heads: usize, scale: f64, joint: JointRows) -> Result<Tensor> {
+    let (rows, lq, _) = q.dims3()?;
+    let keys = joint.blocks * k.dim(1)?;
+    let by_cache = (SCORE_BLOCK_BYTES / (4 * keys.max(1))).clamp(QUERY_LANES, MAX_QUERY_BLOCK);
+    // at least four tasks per thread, for balance
+    let by_tasks = lq.div_ceil((4 * rayon::current_num_threads()).div_ceil(rows.max(1)));
+    let block = by_cache.min(by_tasks.next_multiple_of(QUERY_LANES)) / QUERY_LANES * QUERY_LANES;
+    attention_in_blocks(q, k, v, heads, scale, joint, block.max(1))
 }
 
 /// [`attention`] with an explicit query block size.
-fn attention_in_blocks(q: &Tensor, k: &Tensor, v: &Tensor, heads: usize, scale: f64, block: usize) -> Result<Tensor> {
-    let op = AttentionKernel { heads, scale: scale as f32, block };
+fn attention_in_blocks(q: &Tensor, k: &Tensor, v: &Tensor, heads: usize, scale: f64, joint: JointRows, block: usize) -> Result<Tensor> {
+    let op = AttentionKernel { heads, scale: scale as f32, joint, block };
     q.contiguous()?.apply_op3_no_bwd(&k.contiguous()?, &v.contiguous()?, &op)
 }
 
 struct AttentionKernel {
     heads: usize,
     scale: f32,
+    joint: JointRows,
     block: usize,
 }
 
@@ -43,37 +76,48 @@ impl CustomOp3 for AttentionKernel {
 
     fn cpu_fwd(&self, qs: &CpuStorage, ql: &Layout, ks: &CpuStorage, kl: &Layout, vs: &CpuStorage, vl: &Layout) -> Result<(CpuStorage, Shape)> {
         let (q, k, v) = (contiguous_f32(qs, ql, self.name())?, contiguous_f32(ks, kl, self.name())?, contiguous_f32(vs, vl, self.name())?);
-        let (b, lq, hd) = ql.shape().dims3()?;
-        let (bk, lk, hdk) = kl.shape().dims3()?;
-        if bk != b || hdk != hd || vl.shape() != kl.shape() || hd % self.heads != 0 {
-            bail!("attention: q {:?}, k {:?}, v {:?} with {} heads", ql.shape(), kl.shape(), vl.shape(), self.heads);
+        let (rows, lq, hd) = ql.shape().dims3()?;
+        let (krows, lk, khd) = kl.shape().dims3()?;
+        let JointRows { blocks, stride } = self.joint;
+        if krows != rows || khd != hd || vl.shape() != kl.shape() || hd % self.heads != 0 || blocks * stride == 0 || rows % (blocks * stride) != 0 {
+            bail!("attention: q {:?}, k {:?}, v {:?} with {} heads and {:?}", ql.shape(), kl.shape(), vl.shape(), self.heads, self.joint);
         }
         let d = hd / self.heads;
-        let mut out = vec![0f32; b * lq * hd];
-        if lq > 0 && hd > 0 {
-            out.par_chunks_mut(lq * hd).enumerate().for_each(|(bi, out_b)| {
-                let (q, k, v) = (&q[bi * lq * hd..], &k[bi * lk * hd..], &v[bi * lk * hd..]);
-                out_b.par_chunks_mut(self.block * hd).enumerate().for_each(|(ci, out_c)| {
-                    let rows = out_c.len() / hd;
-                    let q = &q[ci * self.block * hd..];
-                    let mut scores = Scratch::take(rows * lk);
+        // key rows one apart are one run of keys: a single product instead of one per row
+        let (runs, run_len, run_step) = if stride == 1 { (1, blocks * lk, 0) } else { (blocks, lk, stride * lk * hd) };
+        let keys = runs * run_len;
+        let mut out = vec![0f32; rows * lq * hd];
+        if lq > 0 && hd > 0 && keys > 0 {
+            out.par_chunks_mut(lq * hd).enumerate().for_each(|(r, out_r)| {
+                let first = self.joint.first_key_row(r) * lk * hd;
+                out_r.par_chunks_mut(self.block * hd).enumerate().for_each(|(ci, out_c)| {
+                    let n = out_c.len() / hd;
+                    let q = &q[(r * lq + ci * self.block) * hd..];
+                    // scores key-major, [keys][queries]: gemm's fastest output layout here
+                    let mut scores = Scratch::take(n * keys);
                     let scores = scores.as_mut_slice();
-                    let mut inv_sums = vec![0f32; rows];
+                    let mut inv_sums = vec![0f32; n];
                     for h in 0..self.heads {
-                        let (qh, kh) = (MatRef::new(&q[h * d..], rows, d, hd, 1), MatRef::new(&k[h * d..], lk, d, hd, 1));
-                        gemm(MatMut::new(scores, rows, lk, lk, 1), qh, kh.t(), self.scale, false, false);
-                        exp_rows(scores, lk, &mut inv_sums);
+                        let qh = MatRef::new(&q[h * d..], n, d, hd, 1);
+                        for j in 0..runs {
+                            let kh = MatRef::new(&k[first + j * run_step + h * d..], run_len, d, hd, 1);
+                            gemm(MatMut::new(&mut scores[j * run_len * n..], n, run_len, 1, n), qh, kh.t(), self.scale, false, false);
+                        }
+                        exp_key_major(scores, n, &mut inv_sums);
                         // unnormalised weights times v, then each output row divided by its sum
-                        let probs = MatRef::new(scores, rows, lk, lk, 1);
-                        gemm(MatMut::new(&mut out_c[h * d..], rows, d, hd, 1), probs, MatRef::new(&v[h * d..], lk, d, hd, 1), 1.0, false, false);
-                        for (r, inv) in inv_sums.iter().enumerate() {
-                            out_c[r * hd + h * d..r * hd + (h + 1) * d].iter_mut().for_each(|o| *o *= inv);
+                        for j in 0..runs {
+                            let probs = MatRef::new(&scores[j * run_len * n..], n, run_len, 1, n);
+                            let vh = MatRef::new(&v[first + j * run_step + h * d..], run_len, d, hd, 1);
+                            gemm(MatMut::new(&mut out_c[h * d..], n, d, hd, 1), probs, vh, 1.0, j > 0, false);
+                        }
+                        for (i, inv) in inv_sums.iter().enumerate() {
+                            out_c[i * hd + h * d..i * hd + (h + 1) * d].iter_mut().for_each(|o| *o *= inv);
                         }
                     }
                 });
             });
         }
-        Ok((CpuStorage::F32(out), Shape::from_dims(&[b, lq, hd])))
+        Ok((CpuStorage::F32(out), Shape::from_dims(&[rows, lq, hd])))
     }
 }
 
@@ -116,14 +160,15 @@ impl Attention {
         Ok((self.to_q.forward(x)?, self.to_k.forward(ctx)?, self.to_v.forward(ctx)?))
     }
 
-    /// Attention over projected q, k, v [B, L, H·D], followed by `to_out.0`.
-    pub fn attend(&self, q: &Tensor, k: &Tensor, v: &Tensor) -> Result<Tensor> {
-        self.to_out.forward(&attention(q, k, v, self.heads, self.scale)?)
+    /// `residual` + `to_out.0`(attention over projected q, k, v [R, L, H·D], rows joined by `joint`).
+    pub fn attend_plus(&self, q: &Tensor, k: &Tensor, v: &Tensor, joint: JointRows, residual: &Tensor) -> Result<Tensor> {
+        self.to_out.forward_plus(&attention(q, k, v, self.heads, self.scale, joint)?, residual)
     }
 
-    pub fn forward(&self, x: &Tensor, context: Option<&Tensor>) -> Result<Tensor> {
+    /// `residual` + attention of `x` over `context` (or itself), rows joined by `joint`.
+    pub fn forward_plus(&self, x: &Tensor, context: Option<&Tensor>, joint: JointRows, residual: &Tensor) -> Result<Tensor> {
         let (q, k, v) = self.project(x, context)?;
-        self.attend(&q, &k, &v)
+        self.attend_plus(&q, &k, &v, joint, residual)
     }
 }
 
@@ -132,22 +177,40 @@ mod tests {
     use super::*;
     use candle_core::{DType, Device};
 
-    /// The blocked multi-head kernel against one full softmax per head in candle ops, with
-    /// blocks that do not divide the queries.
+    /// The reference: one full softmax per head in candle ops, over the keys of `key_rows`.
+    fn direct(q: &Tensor, k: &Tensor, v: &Tensor, heads: usize, scale: f64, key_rows: &[usize]) -> Result<Tensor> {
+        let pick = |t: &Tensor| -> Result<Tensor> {
+            let parts = key_rows.iter().map(|&r| t.narrow(0, r, 1)).collect::<Result<Vec<_>>>()?;
+            Tensor::cat(&parts, 1)
+        };
+        let (kr, vr) = (pick(k)?, pick(v)?);
+        let (qh, kh, vh) = (heads_to_batch(q, heads)?, heads_to_batch(&kr, heads)?, heads_to_batch(&vr, heads)?);
+        let out = candle_nn::ops::softmax_last_dim(&(qh.matmul(&kh.t()?)? * scale)?)?.matmul(&vh)?;
+        let (_, lq, d) = out.dims3()?;
+        out.reshape((1, heads, lq, d))?.transpose(1, 2)?.reshape((1, lq, heads * d))
+    }
+
+    /// The blocked multi-head kernel against the reference, for own-row, cross-domain-like
+    /// (adjacent rows) and cross-view-like (strided rows) joins, with query blocks that do not
+    /// divide the queries.
     #[test]
     fn matches_direct_softmax_per_head() -> Result<()> {
         let dev = Device::Cpu;
-        let heads = 3;
-        let q = Tensor::randn(0f32, 1.0, (2, 37, heads * 8), &dev)?;
-        let k = Tensor::randn(0f32, 1.0, (2, 29, heads * 8), &dev)?;
-        let v = Tensor::randn(0f32, 1.0, (2, 29, heads * 8), &dev)?;
-        let (qh, kh, vh) = (heads_to_batch(&q, heads)?, heads_to_batch(&k, heads)?, heads_to_batch(&v, heads)?);
-        let direct = candle_nn::ops::softmax_last_dim(&(qh.matmul(&kh.t()?)? * 0.3)?)?.matmul(&vh)?;
-        let direct = direct.reshape((2, heads, 37, 8))?.transpose(1, 2)?.reshape((2, 37, heads * 8))?;
-        for block in [5, 37, 128] {
-            let got = attention_in_blocks(&q, &k, &v, heads, 0.3, block)?;
-            let diff = (&direct - got)?.abs()?.flatten_all()?.max(0)?.to_dtype(DType::F32)?.to_scalar::<f32>()?;
-            assert!(diff < 1e-5, "block {block}: attention differs by {diff}");
+        let (heads, rows) = (3, 6);
+        let q = Tensor::randn(0f32, 1.0, (rows, 37, heads * 8), &dev)?;
+        let k = Tensor::randn(0f32, 1.0, (rows, 29, heads * 8), &dev)?;
+        let v = Tensor::randn(0f32, 1.0, (rows, 29, heads * 8), &dev)?;
+        for joint in [JointRows::OWN, JointRows { blocks: 3, stride: 1 }, JointRows { blocks: 2, stride: 3 }] {
+            for block in [5, 37, 128] {
+                let got = attention_in_blocks(&q, &k, &v, heads, 0.3, joint, block)?;
+                for r in 0..rows {
+                    let first = joint.first_key_row(r);
+                    let key_rows: Vec<usize> = (0..joint.blocks).map(|j| first + j * joint.stride).collect();
+                    let want = direct(&q.narrow(0, r, 1)?, &k, &v, heads, 0.3, &key_rows)?;
+                    let diff = (want - got.narrow(0, r, 1)?)?.abs()?.flatten_all()?.max(0)?.to_dtype(DType::F32)?.to_scalar::<f32>()?;
+                    assert!(diff < 1e-5, "{joint:?} block {block} row {r}: attention differs by {diff}");
+                }
+            }
         }
         Ok(())
     }

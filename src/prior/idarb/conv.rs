@@ -1,12 +1,14 @@
 //! 2-D convolution (inference only) as matrix products: out[Co, pixels] = W[Co, Ci·k·k] ·
 //! col[Ci·k·k, pixels], the im2col matrix built in a reused per-thread buffer of bounded size
 //! (several small images per product, or one large image in bands of output rows); a 1×1
-//! convolution multiplies the input itself. candle-core 0.9's conv2d spent as long in its im2col
-//! as in the product, faulted in a fresh buffer each call, and got C = H = W inputs wrong.
+//! convolution multiplies the input itself. The products accumulate onto the bias, plus a
+//! per-image bias (time embedding) or a residual when given, so those cost no pass of their own.
+//! candle-core 0.9's conv2d spent as long in its im2col as in the product, faulted in a fresh
+//! buffer each call, and got C = H = W inputs wrong.
 use super::cpu_kernel::contiguous_f32;
 use super::matmul::{gemm, MatMut, MatRef};
 use super::scratch::Scratch;
-use candle_core::{bail, CpuStorage, CustomOp3, Layout, Module, Result, Shape, Tensor};
+use candle_core::{bail, CpuStorage, CustomOp2, CustomOp3, Layout, Module, Result, Shape, Tensor};
 use candle_nn::{Conv2dConfig, VarBuilder};
 use rayon::prelude::*;
 
@@ -17,9 +19,8 @@ const COL_BUDGET_BYTES: usize = 64 << 20;
 pub struct Conv2d {
     /// [Co, Ci, k, k], contiguous.
     weight: Tensor,
-    /// [Co].
-    bias: Tensor,
-    kernel: ConvKernel,
+    bias: Vec<f32>,
+    shape: ConvShape,
 }
 
 /// Weights `weight` [Co, Ci, k, k] and `bias` [Co] under `vb`, initialised as candle-nn's conv2d
@@ -29,28 +30,38 @@ pub fn conv2d(in_channels: usize, out_channels: usize, kernel: usize, cfg: Conv2
         bail!("conv2d: only groups = 1 and dilation = 1 are supported");
     }
     let conv = candle_nn::conv2d(in_channels, out_channels, kernel, cfg, vb)?;
-    let bias = conv.bias().cloned().ok_or_else(|| candle_core::Error::Msg("conv2d: no bias".into()))?;
-    Ok(Conv2d {
-        weight: conv.weight().contiguous()?,
-        bias,
-        kernel: ConvKernel { kernel, stride: cfg.stride, padding: cfg.padding, col_budget: COL_BUDGET_BYTES / 4 },
-    })
+    let bias = conv.bias().ok_or_else(|| candle_core::Error::Msg("conv2d: no bias".into()))?.to_vec1::<f32>()?;
+    let shape = ConvShape { kernel, stride: cfg.stride, padding: cfg.padding, col_budget: COL_BUDGET_BYTES / 4 };
+    Ok(Conv2d { weight: conv.weight().contiguous()?, bias, shape })
+}
+
+impl Conv2d {
+    /// conv(x) + `extra`, where `extra` is a per-image bias [N, Co] or a residual [N, Co, H', W'].
+    pub fn forward_plus(&self, x: &Tensor, extra: &Tensor) -> Result<Tensor> {
+        let kernel = ConvKernel { shape: self.shape, bias: &self.bias };
+        x.contiguous()?.apply_op3_no_bwd(&self.weight, &extra.contiguous()?, &kernel)
+    }
 }
 
 impl Module for Conv2d {
     /// `x`: [N, Ci, H, W] f32 → [N, Co, H', W'].
     fn forward(&self, x: &Tensor) -> Result<Tensor> {
-        x.contiguous()?.apply_op3_no_bwd(&self.weight, &self.bias, &self.kernel)
+        x.contiguous()?.apply_op2_no_bwd(&self.weight, &ConvKernel { shape: self.shape, bias: &self.bias })
     }
 }
 
 #[derive(Debug, Clone, Copy)]
-struct ConvKernel {
+struct ConvShape {
     kernel: usize,
     stride: usize,
     padding: usize,
     /// Largest im2col buffer, in elements.
     col_budget: usize,
+}
+
+struct ConvKernel<'a> {
+    shape: ConvShape,
+    bias: &'a [f32],
 }
 
 /// Sizes of one convolution.
@@ -98,24 +109,31 @@ fn im2col(x: &[f32], g: Geometry, i0: usize, images: usize, r0: usize, rows: usi
     });
 }
 
-impl CustomOp3 for ConvKernel {
-    fn name(&self) -> &'static str {
-        "idarb-conv2d"
-    }
-
-    fn cpu_fwd(&self, xs: &CpuStorage, xl: &Layout, ws: &CpuStorage, wl: &Layout, bs: &CpuStorage, bl: &Layout) -> Result<(CpuStorage, Shape)> {
-        let (x, wt, bias) = (contiguous_f32(xs, xl, self.name())?, contiguous_f32(ws, wl, self.name())?, contiguous_f32(bs, bl, self.name())?);
+impl ConvKernel<'_> {
+    fn run(&self, x: &[f32], xl: &Layout, wt: &[f32], wl: &Layout, extra: Option<(&[f32], &Layout)>) -> Result<(CpuStorage, Shape)> {
         let (n, ci, h, w) = xl.shape().dims4()?;
         let (co, wci, kh, kw) = wl.shape().dims4()?;
-        let (k, s, p) = (self.kernel, self.stride, self.padding);
-        if wci != ci || kh != k || kw != k || bias.len() != co || s == 0 || h + 2 * p < k || w + 2 * p < k {
-            bail!("conv2d: input {:?}, weight {:?}, bias {:?}, stride {s}, padding {p}", xl.shape(), wl.shape(), bl.shape());
+        let ConvShape { kernel: k, stride: s, padding: p, col_budget } = self.shape;
+        if wci != ci || kh != k || kw != k || self.bias.len() != co || s == 0 || h + 2 * p < k || w + 2 * p < k {
+            bail!("conv2d: input {:?}, weight {:?}, {} biases, stride {s}, padding {p}", xl.shape(), wl.shape(), self.bias.len());
         }
         let (ho, wo) = ((h + 2 * p - k) / s + 1, (w + 2 * p - k) / s + 1);
         let (hwo, kk) = (ho * wo, ci * k * k);
+        if let Some((_, el)) = extra {
+            if el.dims() != [n, co] && el.dims() != [n, co, ho, wo] {
+                bail!("conv2d: the added term {:?} is neither [{n}, {co}] nor [{n}, {co}, {ho}, {wo}]", el.shape());
+            }
+        }
         let mut out = vec![0f32; n * co * hwo];
-        // the bias first: every product below accumulates onto it
-        out.par_chunks_mut(hwo.max(1)).enumerate().for_each(|(i, plane)| plane.fill(bias[i % co]));
+        // bias (+ extra) first: every product below accumulates onto it
+        out.par_chunks_mut(hwo.max(1)).enumerate().for_each(|(i, plane)| {
+            let b = self.bias[i % co];
+            match extra {
+                None => plane.fill(b),
+                Some((e, _)) if e.len() == n * co => plane.fill(b + e[i]),
+                Some((e, _)) => plane.iter_mut().zip(&e[i * hwo..][..hwo]).for_each(|(o, r)| *o = b + r),
+            }
+        });
         let wm = MatRef::new(wt, co, kk, kk, 1);
         if k == 1 && s == 1 && p == 0 {
             for (i, out_i) in out.chunks_mut(co * hwo).enumerate() {
@@ -124,8 +142,8 @@ impl CustomOp3 for ConvKernel {
             return Ok((CpuStorage::F32(out), Shape::from_dims(&[n, co, ho, wo])));
         }
         let g = Geometry { ci, h, w, k, stride: s, pad: p, wo };
-        let band = (self.col_budget / (kk * wo)).clamp(1, ho);
-        let group = if band == ho { (self.col_budget / (kk * hwo)).clamp(1, n) } else { 1 };
+        let band = (col_budget / (kk * wo)).clamp(1, ho);
+        let group = if band == ho { (col_budget / (kk * hwo)).clamp(1, n) } else { 1 };
         if group > 1 {
             // several whole images side by side in one product, then moved into NCHW
             for i0 in (0..n).step_by(group) {
@@ -154,6 +172,26 @@ impl CustomOp3 for ConvKernel {
             }
         }
         Ok((CpuStorage::F32(out), Shape::from_dims(&[n, co, ho, wo])))
+    }
+}
+
+impl CustomOp2 for ConvKernel<'_> {
+    fn name(&self) -> &'static str {
+        "idarb-conv2d"
+    }
+
+    fn cpu_fwd(&self, xs: &CpuStorage, xl: &Layout, ws: &CpuStorage, wl: &Layout) -> Result<(CpuStorage, Shape)> {
+        self.run(contiguous_f32(xs, xl, "conv2d")?, xl, contiguous_f32(ws, wl, "conv2d")?, wl, None)
+    }
+}
+
+impl CustomOp3 for ConvKernel<'_> {
+    fn name(&self) -> &'static str {
+        "idarb-conv2d"
+    }
+
+    fn cpu_fwd(&self, xs: &CpuStorage, xl: &Layout, ws: &CpuStorage, wl: &Layout, es: &CpuStorage, el: &Layout) -> Result<(CpuStorage, Shape)> {
+        self.run(contiguous_f32(xs, xl, "conv2d")?, xl, contiguous_f32(ws, wl, "conv2d")?, wl, Some((contiguous_f32(es, el, "conv2d")?, el)))
     }
 }
 
@@ -210,13 +248,33 @@ mod tests {
             // budgets: one tap row, one image, all images
             let wo = (w + 2 * p - k) / s + 1;
             let ho = (h + 2 * p - k) / s + 1;
+            let bias = b.to_vec1::<f32>()?;
             for col_budget in [1, ci * k * k * wo * ho, usize::MAX / 8] {
-                let op = ConvKernel { kernel: k, stride: s, padding: p, col_budget };
-                let got = x.apply_op3_no_bwd(&wt, &b, &op)?.flatten_all()?.to_vec1::<f32>()?;
+                let op = ConvKernel { shape: ConvShape { kernel: k, stride: s, padding: p, col_budget }, bias: &bias };
+                let got = x.apply_op2_no_bwd(&wt, &op)?.flatten_all()?.to_vec1::<f32>()?;
                 for (idx, (g, e)) in got.iter().zip(&want).enumerate() {
                     assert!((g - e).abs() < 1e-4, "case {:?} budget {col_budget} at {idx}: {g} vs {e}", (n, ci, co, h, w, k, s, p));
                 }
             }
+        }
+        Ok(())
+    }
+
+    /// The added term: a per-image bias broadcasts over pixels, a residual adds elementwise.
+    #[test]
+    fn adds_per_image_bias_or_residual() -> Result<()> {
+        let dev = Device::Cpu;
+        let (n, ci, co, hw) = (2usize, 3usize, 4usize, 5usize);
+        let x = Tensor::randn(0f32, 1.0, (n, ci, hw, hw), &dev)?;
+        let wt = Tensor::randn(0f32, 1.0, (co, ci, 3, 3), &dev)?;
+        let bias = vec![0.5f32, -1.0, 2.0, 0.0];
+        let conv = Conv2d { weight: wt, bias, shape: ConvShape { kernel: 3, stride: 1, padding: 1, col_budget: COL_BUDGET_BYTES / 4 } };
+        let plain = conv.forward(&x)?;
+        let per_image = Tensor::randn(0f32, 1.0, (n, co), &dev)?;
+        let residual = Tensor::randn(0f32, 1.0, (n, co, hw, hw), &dev)?;
+        for (extra, want) in [(&per_image, plain.broadcast_add(&per_image.reshape((n, co, 1, 1))?)?), (&residual, (&plain + &residual)?)] {
+            let d = (conv.forward_plus(&x, extra)? - want)?.abs()?.flatten_all()?.max(0)?.to_scalar::<f32>()?;
+            assert!(d < 1e-5, "added term off by {d}");
         }
         Ok(())
     }

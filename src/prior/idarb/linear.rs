@@ -1,6 +1,6 @@
-//! torch's `Linear` for inference, y = x Wᵀ + b, as one product accumulating onto rows that start
-//! as the bias: candle-nn's Linear multiplies, then adds the bias in a second pass into a second
-//! fresh tensor.
+//! torch's `Linear` for inference, y = x Wᵀ + b (+ a residual), as one product accumulating onto
+//! rows that start as the bias (and residual): candle-nn's Linear multiplies, then adds the bias
+//! in a second pass into a second fresh tensor, and a residual add would be a third.
 use super::cpu_kernel::contiguous_f32;
 use super::matmul::{gemm, MatMut, MatRef};
 use candle_core::{bail, CpuStorage, CustomOp2, CustomOp3, Layout, Module, Result, Shape, Tensor};
@@ -11,14 +11,13 @@ use rayon::prelude::*;
 pub struct Linear {
     /// [out, in], contiguous.
     weight: Tensor,
-    /// [out].
-    bias: Option<Tensor>,
+    bias: Option<Vec<f32>>,
 }
 
 /// `weight` and `bias` under `vb`, initialised as candle-nn's when created (random weights).
 pub fn linear(in_dim: usize, out_dim: usize, vb: VarBuilder) -> Result<Linear> {
     let l = candle_nn::linear(in_dim, out_dim, vb)?;
-    Ok(Linear { weight: l.weight().contiguous()?, bias: l.bias().cloned() })
+    Ok(Linear { weight: l.weight().contiguous()?, bias: l.bias().map(Tensor::to_vec1::<f32>).transpose()? })
 }
 
 /// [`linear`] without a bias.
@@ -27,39 +26,55 @@ pub fn linear_no_bias(in_dim: usize, out_dim: usize, vb: VarBuilder) -> Result<L
     Ok(Linear { weight: l.weight().contiguous()?, bias: None })
 }
 
-impl Module for Linear {
-    /// `x`: [..., in] f32 → [..., out].
-    fn forward(&self, x: &Tensor) -> Result<Tensor> {
-        let x = x.contiguous()?;
-        match &self.bias {
-            Some(b) => x.apply_op3_no_bwd(&self.weight, b, &LinearKernel),
-            None => x.apply_op2_no_bwd(&self.weight, &LinearKernel),
-        }
+impl Linear {
+    /// `residual` + x Wᵀ + b, `residual` shaped as the output.
+    pub fn forward_plus(&self, x: &Tensor, residual: &Tensor) -> Result<Tensor> {
+        x.contiguous()?.apply_op3_no_bwd(&self.weight, &residual.contiguous()?, &LinearKernel { bias: self.bias.as_deref() })
     }
 }
 
-struct LinearKernel;
+impl Module for Linear {
+    /// `x`: [..., in] f32 → [..., out].
+    fn forward(&self, x: &Tensor) -> Result<Tensor> {
+        x.contiguous()?.apply_op2_no_bwd(&self.weight, &LinearKernel { bias: self.bias.as_deref() })
+    }
+}
 
-impl LinearKernel {
-    fn run(&self, x: &[f32], xl: &Layout, w: &[f32], wl: &Layout, bias: Option<&[f32]>) -> Result<(CpuStorage, Shape)> {
+struct LinearKernel<'a> {
+    bias: Option<&'a [f32]>,
+}
+
+impl LinearKernel<'_> {
+    fn run(&self, x: &[f32], xl: &Layout, w: &[f32], wl: &Layout, residual: Option<(&[f32], &Layout)>) -> Result<(CpuStorage, Shape)> {
         let (out_dim, in_dim) = wl.shape().dims2()?;
-        let dims = xl.dims();
-        if dims.last() != Some(&in_dim) || bias.is_some_and(|b| b.len() != out_dim) {
+        let mut shape = xl.dims().to_vec();
+        if shape.last() != Some(&in_dim) || self.bias.is_some_and(|b| b.len() != out_dim) {
             bail!("linear: input {:?}, weight {:?}", xl.shape(), wl.shape());
+        }
+        *shape.last_mut().expect("checked above") = out_dim;
+        if let Some((_, rl)) = residual {
+            if rl.dims() != shape.as_slice() {
+                bail!("linear: residual {:?} for an output {shape:?}", rl.shape());
+            }
         }
         let m = x.len() / in_dim.max(1);
         let mut y = vec![0f32; m * out_dim];
-        if let Some(b) = bias {
-            y.par_chunks_mut(out_dim.max(1)).for_each(|row| row.copy_from_slice(b));
+        // bias (+ residual) first: the product accumulates onto it
+        if self.bias.is_some() || residual.is_some() {
+            y.par_chunks_mut(out_dim.max(1)).enumerate().for_each(|(i, row)| match (self.bias, residual) {
+                (Some(b), Some((r, _))) => row.iter_mut().zip(b).zip(&r[i * out_dim..]).for_each(|((y, b), r)| *y = b + r),
+                (Some(b), None) => row.copy_from_slice(b),
+                (None, Some((r, _))) => row.copy_from_slice(&r[i * out_dim..][..out_dim]),
+                (None, None) => {}
+            });
         }
-        gemm(MatMut::new(&mut y, m, out_dim, out_dim, 1), MatRef::new(x, m, in_dim, in_dim, 1), MatRef::new(w, out_dim, in_dim, in_dim, 1).t(), 1.0, bias.is_some(), true);
-        let mut shape = dims.to_vec();
-        *shape.last_mut().expect("checked above") = out_dim;
+        let accumulate = self.bias.is_some() || residual.is_some();
+        gemm(MatMut::new(&mut y, m, out_dim, out_dim, 1), MatRef::new(x, m, in_dim, in_dim, 1), MatRef::new(w, out_dim, in_dim, in_dim, 1).t(), 1.0, accumulate, true);
         Ok((CpuStorage::F32(y), Shape::from_dims(&shape)))
     }
 }
 
-impl CustomOp2 for LinearKernel {
+impl CustomOp2 for LinearKernel<'_> {
     fn name(&self) -> &'static str {
         "idarb-linear"
     }
@@ -69,13 +84,13 @@ impl CustomOp2 for LinearKernel {
     }
 }
 
-impl CustomOp3 for LinearKernel {
+impl CustomOp3 for LinearKernel<'_> {
     fn name(&self) -> &'static str {
         "idarb-linear"
     }
 
-    fn cpu_fwd(&self, xs: &CpuStorage, xl: &Layout, ws: &CpuStorage, wl: &Layout, bs: &CpuStorage, bl: &Layout) -> Result<(CpuStorage, Shape)> {
-        self.run(contiguous_f32(xs, xl, "linear")?, xl, contiguous_f32(ws, wl, "linear")?, wl, Some(contiguous_f32(bs, bl, "linear")?))
+    fn cpu_fwd(&self, xs: &CpuStorage, xl: &Layout, ws: &CpuStorage, wl: &Layout, rs: &CpuStorage, rl: &Layout) -> Result<(CpuStorage, Shape)> {
+        self.run(contiguous_f32(xs, xl, "linear")?, xl, contiguous_f32(ws, wl, "linear")?, wl, Some((contiguous_f32(rs, rl, "linear")?, rl)))
     }
 }
 
@@ -85,7 +100,7 @@ mod tests {
     use candle_core::{DType, Device};
     use std::collections::HashMap;
 
-    /// Against candle-nn's Linear on a 3-D input, with and without a bias.
+    /// Against candle-nn's Linear on a 3-D input, with and without a bias and a residual.
     #[test]
     fn matches_candle_nn_linear() -> Result<()> {
         let dev = Device::Cpu;
@@ -97,8 +112,12 @@ mod tests {
             (linear(5, 6, vb.clone())?, candle_nn::Linear::new(w.clone(), Some(b.clone()))),
             (linear_no_bias(5, 6, vb)?, candle_nn::Linear::new(w.clone(), None)),
         ] {
-            let d = (ours.forward(&x)? - theirs.forward(&x)?)?.abs()?.flatten_all()?.max(0)?.to_scalar::<f32>()?;
+            let want = theirs.forward(&x)?;
+            let d = (ours.forward(&x)? - &want)?.abs()?.flatten_all()?.max(0)?.to_scalar::<f32>()?;
             assert!(d < 1e-5, "linear differs by {d}");
+            let r = Tensor::randn(0f32, 1.0, want.dims(), &dev)?;
+            let d = (ours.forward_plus(&x, &r)? - (want + &r)?)?.abs()?.flatten_all()?.max(0)?.to_scalar::<f32>()?;
+            assert!(d < 1e-5, "linear with residual differs by {d}");
         }
         Ok(())
     }

@@ -26,6 +26,7 @@ pub mod softmax;
 pub mod transformer_dr2d;
 pub mod unet_dr2d_blocks;
 pub mod unet_dr2d_condition;
+pub mod vector_math;
 pub mod weights;
 
 pub use labels::{labels_for_views, run_network, IdarbOptions, InputEncoding, ViewLabels};

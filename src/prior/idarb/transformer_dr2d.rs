@@ -4,7 +4,7 @@
 //! Per block: `attn1` is cross-domain attention (the domain images of one view attend jointly over
 //! 3·L tokens), `attn_mv` cross-view attention (the N views of one domain attend jointly over N·L
 //! tokens, CaPE on q and k), `attn2` text cross-attention, then a GEGLU feed-forward with erf GELU.
-use super::attention::Attention;
+use super::attention::{Attention, JointRows};
 use super::cape::apply_cape;
 use super::geglu::geglu;
 use super::linear::{linear, Linear};
@@ -39,8 +39,9 @@ impl FeedForwardGeglu {
         Ok(Self { proj: linear(dim, 2 * inner, vb.pp("net.0.proj"))?, out: linear(inner, dim, vb.pp("net.2"))? })
     }
 
-    fn forward(&self, x: &Tensor) -> Result<Tensor> {
-        self.out.forward(&geglu(&self.proj.forward(x)?)?)
+    /// `residual` + FF(`x`).
+    fn forward_plus(&self, x: &Tensor, residual: &Tensor) -> Result<Tensor> {
+        self.out.forward_plus(&geglu(&self.proj.forward(x)?)?, residual)
     }
 }
 
@@ -71,33 +72,19 @@ impl BasicDRTransformerBlock {
         })
     }
 
-    /// `x`: [B·N·3, L, C]; `context`: [B·N·3, 77, C_text].
+    /// `x`: [B·N·3, L, C] with rows (object, view, domain); `context`: [B·N·3, 77, C_text].
+    /// Each residual add happens inside the output projection before it.
     pub fn forward(&self, x: &Tensor, context: &Tensor, mv: &MultiViewContext) -> Result<Tensor> {
-        let (rows, l, c) = x.dims3()?;
         let (nd, nv) = (mv.num_domains, mv.num_views);
-        let objects = rows / (nv * nd);
-
-        // attn1, cross-domain: (B·N·3, L, C) → (B·N, 3L, C) is a contiguous regrouping.
-        let h = self.norm1.forward(x)?.reshape((rows / nd, nd * l, c))?;
-        let a = self.attn1.forward(&h, None)?.reshape((rows, l, c))?;
-        let x = (x + a)?;
-
-        // attn_mv, cross-view: (B,N,3,L,C) → (B,3,N,L,C) → (B·3, N·L, C), with CaPE on q and k.
-        let h = self.norm_mv.forward(&x)?;
-        let h = h.reshape((objects, nv, nd, l, c))?.permute((0, 2, 1, 3, 4))?.contiguous()?.reshape((objects * nd, nv * l, c))?;
-        let (q, k, v) = self.attn_mv.project(&h, None)?;
-        let q = apply_cape(&q, mv.pose, nd)?;
-        let k = apply_cape(&k, mv.pose, nd)?;
-        let a = self.attn_mv.attend(&q, &k, &v)?;
-        let a = a.reshape((objects, nd, nv, l, c))?.permute((0, 2, 1, 3, 4))?.contiguous()?.reshape((rows, l, c))?;
-        let x = (x + a)?;
-
+        // attn1, cross-domain: the domain rows of one view attend jointly over their 3·L tokens
+        let x = self.attn1.forward_plus(&self.norm1.forward(x)?, None, JointRows { blocks: nd, stride: 1 }, x)?;
+        // attn_mv, cross-view: one domain's rows of all N views jointly, CaPE on q and k
+        let (q, k, v) = self.attn_mv.project(&self.norm_mv.forward(&x)?, None)?;
+        let (q, k) = (apply_cape(&q, mv.pose, nd)?, apply_cape(&k, mv.pose, nd)?);
+        let x = self.attn_mv.attend_plus(&q, &k, &v, JointRows { blocks: nv, stride: nd }, &x)?;
         // attn2, text cross-attention
-        let a = self.attn2.forward(&self.norm2.forward(&x)?, Some(context))?;
-        let x = (x + a)?;
-
-        let f = self.ff.forward(&self.norm3.forward(&x)?)?;
-        x + f
+        let x = self.attn2.forward_plus(&self.norm2.forward(&x)?, Some(context), JointRows::OWN, &x)?;
+        self.ff.forward_plus(&self.norm3.forward(&x)?, &x)
     }
 }
 

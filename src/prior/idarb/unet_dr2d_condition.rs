@@ -207,7 +207,7 @@ impl UNetDR2DConditionModel {
         for block in &self.up_blocks {
             h = block.forward(&h, &mut skips, &emb, context, &mv)?;
         }
-        let h = self.conv_norm_out.forward(&h)?.silu()?;
+        let h = self.conv_norm_out.forward_silu(&h)?;
         self.conv_out.forward(&h)?.to_dtype(dtype)
     }
 
