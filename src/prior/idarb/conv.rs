@@ -201,7 +201,7 @@ mod tests {
     use candle_core::Device;
 
     /// Direct loop: zero padding `p`, stride `s`, square kernel.
-    fn direct(x: &[f32], wt: &[f32], b: &[f32], (n, ci, h, w): (usize, usize, usize, usize), co: usize, k: usize, s: usize, p: usize) -> Vec<f32> {
+    fn direct(x: &[f32], wt: &[f32], b: &[f32], (n, ci, h, w): (usize, usize, usize, usize), co: usize, (k, s, p): (usize, usize, usize)) -> Vec<f32> {
         let (ho, wo) = ((h + 2 * p - k) / s + 1, (w + 2 * p - k) / s + 1);
         let mut out = vec![0f32; n * co * ho * wo];
         for i in 0..n {
@@ -244,7 +244,7 @@ mod tests {
             let x = Tensor::randn(0f32, 1.0, (n, ci, h, w), &dev)?;
             let wt = Tensor::randn(0f32, 1.0, (co, ci, k, k), &dev)?;
             let b = Tensor::randn(0f32, 1.0, co, &dev)?;
-            let want = direct(&x.flatten_all()?.to_vec1()?, &wt.flatten_all()?.to_vec1()?, &b.to_vec1()?, (n, ci, h, w), co, k, s, p);
+            let want = direct(&x.flatten_all()?.to_vec1()?, &wt.flatten_all()?.to_vec1()?, &b.to_vec1()?, (n, ci, h, w), co, (k, s, p));
             // budgets: one tap row, one image, all images
             let wo = (w + 2 * p - k) / s + 1;
             let ho = (h + 2 * p - k) / s + 1;

@@ -3,7 +3,7 @@
 //! in a second pass into a second fresh tensor, and a residual add would be a third.
 use super::cpu_kernel::contiguous_f32;
 use super::matmul::{gemm, MatMut, MatRef};
-use candle_core::{bail, CpuStorage, CustomOp2, CustomOp3, Layout, Module, Result, Shape, Tensor};
+use candle_core::{bail, CpuStorage, CustomOp2, CustomOp3, Layout, Module, Result, Shape, Storage, Tensor};
 use candle_nn::VarBuilder;
 use rayon::prelude::*;
 
@@ -31,6 +31,36 @@ impl Linear {
     pub fn forward_plus(&self, x: &Tensor, residual: &Tensor) -> Result<Tensor> {
         x.contiguous()?.apply_op3_no_bwd(&self.weight, &residual.contiguous()?, &LinearKernel { bias: self.bias.as_deref() })
     }
+
+    /// dst ← x Wᵀ + b, or dst ← dst + x Wᵀ + b when `accumulate`, for rows of `x` (row-major,
+    /// `in` wide) and of `dst` (`out` wide): the slice-level product fused kernels build on.
+    pub fn product_into(&self, x: &[f32], dst: &mut [f32], accumulate: bool) -> Result<()> {
+        let (storage, layout) = self.weight.storage_and_layout();
+        let w = match &*storage {
+            Storage::Cpu(s) => contiguous_f32(s, layout, "linear")?,
+            _ => bail!("linear: CPU tensors only"),
+        };
+        product_into(x, w, layout, self.bias.as_deref(), dst, accumulate)
+    }
+}
+
+/// dst (+)= x Wᵀ + b for a weight `w` [out, in] (layout `wl`): the bias goes in first and the
+/// product accumulates onto it.
+fn product_into(x: &[f32], w: &[f32], wl: &Layout, bias: Option<&[f32]>, dst: &mut [f32], accumulate: bool) -> Result<()> {
+    let (out_dim, in_dim) = wl.shape().dims2()?;
+    let m = x.len() / in_dim.max(1);
+    if x.len() != m * in_dim || dst.len() != m * out_dim || bias.is_some_and(|b| b.len() != out_dim) {
+        bail!("linear: {} inputs and {} outputs for a weight {:?}", x.len(), dst.len(), wl.shape());
+    }
+    if let Some(b) = bias {
+        dst.par_chunks_mut(out_dim.max(1)).for_each(|row| match accumulate {
+            true => row.iter_mut().zip(b).for_each(|(y, b)| *y += b),
+            false => row.copy_from_slice(b),
+        });
+    }
+    let onto = accumulate || bias.is_some();
+    gemm(MatMut::new(dst, m, out_dim, out_dim, 1), MatRef::new(x, m, in_dim, in_dim, 1), MatRef::new(w, out_dim, in_dim, in_dim, 1).t(), 1.0, onto, true);
+    Ok(())
 }
 
 impl Module for Linear {
@@ -48,28 +78,28 @@ impl LinearKernel<'_> {
     fn run(&self, x: &[f32], xl: &Layout, w: &[f32], wl: &Layout, residual: Option<(&[f32], &Layout)>) -> Result<(CpuStorage, Shape)> {
         let (out_dim, in_dim) = wl.shape().dims2()?;
         let mut shape = xl.dims().to_vec();
-        if shape.last() != Some(&in_dim) || self.bias.is_some_and(|b| b.len() != out_dim) {
+        if shape.last() != Some(&in_dim) {
             bail!("linear: input {:?}, weight {:?}", xl.shape(), wl.shape());
         }
         *shape.last_mut().expect("checked above") = out_dim;
-        if let Some((_, rl)) = residual {
-            if rl.dims() != shape.as_slice() {
-                bail!("linear: residual {:?} for an output {shape:?}", rl.shape());
+        let y = match residual {
+            Some((r, rl)) if rl.dims() == shape.as_slice() => {
+                // residual + bias in one pass, then the product onto it
+                let mut y = vec![0f32; r.len()];
+                y.par_chunks_mut(out_dim.max(1)).zip(r.par_chunks(out_dim.max(1))).for_each(|(y, r)| match self.bias {
+                    Some(b) => y.iter_mut().zip(r).zip(b).for_each(|((y, r), b)| *y = r + b),
+                    None => y.copy_from_slice(r),
+                });
+                product_into(x, w, wl, None, &mut y, true)?;
+                y
             }
-        }
-        let m = x.len() / in_dim.max(1);
-        let mut y = vec![0f32; m * out_dim];
-        // bias (+ residual) first: the product accumulates onto it
-        if self.bias.is_some() || residual.is_some() {
-            y.par_chunks_mut(out_dim.max(1)).enumerate().for_each(|(i, row)| match (self.bias, residual) {
-                (Some(b), Some((r, _))) => row.iter_mut().zip(b).zip(&r[i * out_dim..]).for_each(|((y, b), r)| *y = b + r),
-                (Some(b), None) => row.copy_from_slice(b),
-                (None, Some((r, _))) => row.copy_from_slice(&r[i * out_dim..][..out_dim]),
-                (None, None) => {}
-            });
-        }
-        let accumulate = self.bias.is_some() || residual.is_some();
-        gemm(MatMut::new(&mut y, m, out_dim, out_dim, 1), MatRef::new(x, m, in_dim, in_dim, 1), MatRef::new(w, out_dim, in_dim, in_dim, 1).t(), 1.0, accumulate, true);
+            Some((_, rl)) => bail!("linear: residual {:?} for an output {shape:?}", rl.shape()),
+            None => {
+                let mut y = vec![0f32; x.len() / in_dim.max(1) * out_dim];
+                product_into(x, w, wl, self.bias, &mut y, false)?;
+                y
+            }
+        };
         Ok((CpuStorage::F32(y), Shape::from_dims(&shape)))
     }
 }

@@ -11,6 +11,7 @@ pub mod autoencoder_kl;
 pub mod cape;
 pub mod conv;
 pub mod cpu_kernel;
+pub mod feed_forward;
 pub mod geglu;
 pub mod group_norm;
 pub mod labels;

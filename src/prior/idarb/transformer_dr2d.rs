@@ -6,7 +6,7 @@
 //! tokens, CaPE on q and k), `attn2` text cross-attention, then a GEGLU feed-forward with erf GELU.
 use super::attention::{Attention, JointRows};
 use super::cape::apply_cape;
-use super::geglu::geglu;
+use super::feed_forward::FeedForwardGeglu;
 use super::linear::{linear, Linear};
 use candle_core::{Module, Result, Tensor};
 use super::group_norm::{group_norm, GroupNorm};
@@ -24,25 +24,6 @@ pub struct MultiViewContext<'a> {
     pub num_domains: usize,
     /// [objects, views, 4] CaPE angles.
     pub pose: &'a Tensor,
-}
-
-/// diffusers `FeedForward` with GEGLU: `net.0.proj` (C → 2·4C), value · gelu_erf(gate), `net.2`.
-#[derive(Debug, Clone)]
-struct FeedForwardGeglu {
-    proj: Linear,
-    out: Linear,
-}
-
-impl FeedForwardGeglu {
-    fn new(vb: VarBuilder, dim: usize) -> Result<Self> {
-        let inner = 4 * dim;
-        Ok(Self { proj: linear(dim, 2 * inner, vb.pp("net.0.proj"))?, out: linear(inner, dim, vb.pp("net.2"))? })
-    }
-
-    /// `residual` + FF(`x`).
-    fn forward_plus(&self, x: &Tensor, residual: &Tensor) -> Result<Tensor> {
-        self.out.forward_plus(&geglu(&self.proj.forward(x)?)?, residual)
-    }
 }
 
 /// IDArb `BasicDRTransformerBlock` (with `attn1_cd` and `attn_mid_cv` on, as released).
