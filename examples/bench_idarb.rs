@@ -2,7 +2,10 @@
 //! in the same run PyTorch's time for diffusers' SD-2.1 UNet with 8 input channels
 //! (`tools/idarb/bench_torch_unet.py`, skipped with a note when torch is not installed).
 //!
-//!     cargo run --release --example bench_idarb [-- --size 256 --views 1,2 --repeats 2]
+//! Also prints the process's peak resident memory after the candle runs.
+//!
+//!     cargo run --release --example bench_idarb [-- --size 256 --views 1,2 --repeats 2 --no-torch]
+//!     cargo run --release --example bench_idarb -- --size 512 --views 4 --repeats 1 --no-torch
 use anyhow::{Context, Result};
 use candle_core::{DType, Device, Tensor};
 use candle_nn::{VarBuilder, VarMap};
@@ -10,9 +13,20 @@ use reconstruct::prior::idarb::unet_dr2d_condition::{unet_forward_flops, UNetDR2
 use std::process::Command;
 use std::time::Instant;
 
+// The allocator of the `reconstruct` binary, which runs this network for `--prior idarb`.
+#[global_allocator]
+static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
+
 fn arg<T: std::str::FromStr>(name: &str, default: T) -> T {
     let args: Vec<String> = std::env::args().collect();
     args.iter().position(|a| a == name).and_then(|i| args.get(i + 1)).and_then(|v| v.parse().ok()).unwrap_or(default)
+}
+
+/// Peak resident set size of this process in GiB (Linux `VmHWM`), if readable.
+fn peak_rss_gib() -> Option<f64> {
+    let status = std::fs::read_to_string("/proc/self/status").ok()?;
+    let kib: f64 = status.lines().find(|l| l.starts_with("VmHWM:"))?.split_whitespace().nth(1)?.parse().ok()?;
+    Some(kib / (1024.0 * 1024.0))
 }
 
 fn main() -> Result<()> {
@@ -45,8 +59,14 @@ fn main() -> Result<()> {
         println!("candle N={n} rows={rows} {size}² seconds={med:.3} ({:.0} GFLOP, {:.0} GFLOP/s)", flops / 1e9, flops / med / 1e9);
         candle_times.push((n, med));
     }
+    if let Some(gib) = peak_rss_gib() {
+        println!("candle: peak resident memory {gib:.2} GiB (weights {:.2} GiB)", varmap.all_vars().iter().map(|v| v.elem_count()).sum::<usize>() as f64 * 4.0 / (1u64 << 30) as f64);
+    }
     drop(unet);
     drop(varmap);
+    if std::env::args().any(|a| a == "--no-torch") {
+        return Ok(());
+    }
 
     let script = concat!(env!("CARGO_MANIFEST_DIR"), "/tools/idarb/bench_torch_unet.py");
     let views_arg: Vec<String> = views.iter().map(|v| v.to_string()).collect();

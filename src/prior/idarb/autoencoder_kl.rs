@@ -1,12 +1,13 @@
 //! diffusers `AutoencoderKL` with the SD layout: encoder (to the latent mean × scaling factor) and
 //! decoder. Accepts both attention naming schemes (`to_q`… since diffusers 0.14, `query`… before).
-use super::attention::chunked_attention;
+use super::attention::{attention, JointRows};
 use super::resnet::{Downsample2D, ResnetBlock2D, Upsample2D};
 use anyhow::Context;
 use candle_core::{Module, Result, Tensor};
 use super::conv::{conv2d, Conv2d};
 use super::group_norm::{group_norm, GroupNorm};
-use candle_nn::{linear, Conv2dConfig, Linear, VarBuilder};
+use super::linear::{linear, Linear};
+use candle_nn::{Conv2dConfig, VarBuilder};
 use serde_json::Value;
 use std::path::Path;
 
@@ -82,7 +83,7 @@ impl VaeAttention {
         let (b, c, h, w) = x.dims4()?;
         let t = self.group_norm.forward(x)?.reshape((b, c, h * w))?.transpose(1, 2)?.contiguous()?;
         let (q, k, v) = (self.to_q.forward(&t)?, self.to_k.forward(&t)?, self.to_v.forward(&t)?);
-        let a = self.to_out.forward(&chunked_attention(&q, &k, &v, 1.0 / (c as f64).sqrt())?)?;
+        let a = self.to_out.forward(&attention(&q, &k, &v, 1, 1.0 / (c as f64).sqrt(), JointRows::OWN)?)?;
         let a = a.transpose(1, 2)?.reshape((b, c, h, w))?;
         a + x
     }
@@ -159,7 +160,7 @@ impl Encoder {
             }
         }
         let h = self.mid.forward(&h)?;
-        self.conv_out.forward(&self.conv_norm_out.forward(&h)?.silu()?)
+        self.conv_out.forward(&self.conv_norm_out.forward_silu(&h)?)
     }
 }
 
@@ -207,7 +208,7 @@ impl Decoder {
                 h = u.forward(&h, None)?;
             }
         }
-        self.conv_out.forward(&self.conv_norm_out.forward(&h)?.silu()?)
+        self.conv_out.forward(&self.conv_norm_out.forward_silu(&h)?)
     }
 }
 

@@ -5,29 +5,51 @@
 //! the `P` pose values covers a contiguous block of `C/P` channels), pairwise on **adjacent**
 //! channels: (x₂ᵢ, x₂ᵢ₊₁) ↦ (x₂ᵢ cos θ − x₂ᵢ₊₁ sin θ, x₂ᵢ₊₁ cos θ + x₂ᵢ sin θ). Because each pair is a
 //! plane rotation, q'·k' depends only on the pose difference of the two views.
-use candle_core::{bail, Result, Tensor, D};
+use super::cpu_kernel::contiguous_f32;
+use candle_core::{bail, CpuStorage, CustomOp2, Layout, Result, Shape, Tensor};
+use rayon::prelude::*;
 
-/// Rotate q or k of the cross-view attention.
-/// `x`: [B·num_domains, N·L, C] with rows ordered (object, domain) and tokens (view, pixel);
+/// Rotate q or k of the cross-view attention, in one parallel pass.
+/// `x`: [B·N·num_domains, L, C] with rows ordered (object, view, domain) (the UNet's own order);
 /// `pose`: [B, N, P] angles in radians.
 pub fn apply_cape(x: &Tensor, pose: &Tensor, num_domains: usize) -> Result<Tensor> {
-    let (bd, nl, c) = x.dims3()?;
-    let (b, n, p) = pose.dims3()?;
-    if bd != b * num_domains || nl % n != 0 || c % (2 * p) != 0 {
-        bail!("CaPE: x {:?} does not match pose {:?} with {num_domains} domains", x.dims(), pose.dims());
+    x.contiguous()?.apply_op2_no_bwd(&pose.to_dtype(candle_core::DType::F32)?.contiguous()?, &Cape { num_domains })
+}
+
+struct Cape {
+    num_domains: usize,
+}
+
+impl CustomOp2 for Cape {
+    fn name(&self) -> &'static str {
+        "idarb-cape"
     }
-    let l = nl / n;
-    let pose = pose.to_dtype(x.dtype())?;
-    // angle per channel: [B, N, P] → [B, N, P, C/P] → [B, 1, N, 1, C]
-    let angles = pose.unsqueeze(3)?.broadcast_as((b, n, p, c / p))?.reshape((b, 1, n, 1, c))?;
-    let (cos, sin) = (angles.cos()?, angles.sin()?);
-    let x5 = x.reshape((b, num_domains, n, l, c))?;
-    let pairs = x5.reshape((b, num_domains, n, l, c / 2, 2))?;
-    let even = pairs.narrow(D::Minus1, 0, 1)?;
-    let odd = pairs.narrow(D::Minus1, 1, 1)?;
-    let rotated = Tensor::cat(&[odd.neg()?, even], D::Minus1)?.reshape((b, num_domains, n, l, c))?;
-    let out = (x5.broadcast_mul(&cos)? + rotated.broadcast_mul(&sin)?)?;
-    out.reshape((bd, nl, c))
+
+    fn cpu_fwd(&self, xs: &CpuStorage, xl: &Layout, ps: &CpuStorage, pl: &Layout) -> Result<(CpuStorage, Shape)> {
+        let (x, pose) = (contiguous_f32(xs, xl, self.name())?, contiguous_f32(ps, pl, self.name())?);
+        let (rows, l, c) = xl.shape().dims3()?;
+        let (b, n, p) = pl.shape().dims3()?;
+        if rows != b * n * self.num_domains || p == 0 || c % (2 * p) != 0 {
+            bail!("CaPE: x {:?} does not match pose {:?} with {} domains", xl.shape(), pl.shape(), self.num_domains);
+        }
+        let (cos, sin): (Vec<f32>, Vec<f32>) = pose.iter().map(|a| (a.cos(), a.sin())).unzip();
+        let block = c / p; // channels per pose value, even, so a pair never straddles two
+        let mut out = vec![0f32; x.len()];
+        if l > 0 && c > 0 {
+            out.par_chunks_mut(l * c).zip(x.par_chunks(l * c)).enumerate().for_each(|(r, (out, x))| {
+                let view = r / self.num_domains; // object · N + view, the pose row
+                let (cos, sin) = (&cos[view * p..(view + 1) * p], &sin[view * p..(view + 1) * p]);
+                for (out, x) in out.chunks_exact_mut(c).zip(x.chunks_exact(c)) {
+                    for (i, (o, x)) in out.chunks_exact_mut(2).zip(x.chunks_exact(2)).enumerate() {
+                        let j = 2 * i / block;
+                        o[0] = x[0] * cos[j] - x[1] * sin[j];
+                        o[1] = x[1] * cos[j] + x[0] * sin[j];
+                    }
+                }
+            });
+        }
+        Ok((CpuStorage::F32(out), Shape::from_dims(&[rows, l, c])))
+    }
 }
 
 #[cfg(test)]
@@ -66,13 +88,14 @@ mod tests {
     fn dot_product_depends_only_on_pose_difference() -> Result<()> {
         let dev = Device::Cpu;
         let (c, l, heads) = (16usize, 3usize, 2usize);
-        let q = Tensor::randn(0f32, 1.0, (1, 2 * l, c), &dev)?;
-        let k = Tensor::randn(0f32, 1.0, (1, 2 * l, c), &dev)?;
+        // rows = the two views of one object (one domain), L tokens each
+        let q = Tensor::randn(0f32, 1.0, (2, l, c), &dev)?;
+        let k = Tensor::randn(0f32, 1.0, (2, l, c), &dev)?;
         let dots = |p: [[f32; 4]; 2]| -> Vec<Vec<f32>> {
             let pose = Tensor::new(&[p], &dev).expect("test setup");
-            let qr = apply_cape(&q, &pose, 1).expect("test setup");
-            let kr = apply_cape(&k, &pose, 1).expect("test setup");
-            // head-split as the attention does, then all q·k dot products
+            let qr = apply_cape(&q, &pose, 1).expect("test setup").reshape((1, 2 * l, c)).expect("test setup");
+            let kr = apply_cape(&k, &pose, 1).expect("test setup").reshape((1, 2 * l, c)).expect("test setup");
+            // head-split as the attention does, then all q·k dot products across both views
             let qh = crate::prior::idarb::attention::heads_to_batch(&qr, heads).expect("test setup");
             let kh = crate::prior::idarb::attention::heads_to_batch(&kr, heads).expect("test setup");
             let d = qh.matmul(&kh.t().expect("test setup")).expect("test setup");
@@ -89,16 +112,21 @@ mod tests {
         Ok(())
     }
 
-    /// Domains share the view's pose: each domain row is rotated identically.
+    /// Domains share the view's pose: the three domain rows of a view are rotated identically,
+    /// and the next view's rows by its own pose.
     #[test]
     fn domains_share_pose() -> Result<()> {
         let dev = Device::Cpu;
-        let row = Tensor::randn(0f32, 1.0, (1, 4, 8), &dev)?;
-        let x = Tensor::cat(&[&row, &row, &row], 0)?; // 3 domains, N=2 views × L=2
+        let row = Tensor::randn(0f32, 1.0, (1, 2, 8), &dev)?;
+        let x = Tensor::cat(&[&row; 6], 0)?; // rows (view, domain): N = 2 views × 3 domains, L = 2
         let pose = Tensor::new(&[[[0.2f32, 0.4, 0.6, 0.8], [1.0, -1.0, 0.5, 0.0]]], &dev)?;
         let y = apply_cape(&x, &pose, 3)?;
-        let d = (y.narrow(0, 0, 1)? - y.narrow(0, 2, 1)?)?.abs()?.flatten_all()?.max(0)?.to_scalar::<f32>()?;
-        assert_eq!(d, 0.0);
+        let diff = |a: usize, b: usize| -> Result<f32> {
+            (y.narrow(0, a, 1)? - y.narrow(0, b, 1)?)?.abs()?.flatten_all()?.max(0)?.to_scalar::<f32>()
+        };
+        assert_eq!(diff(0, 2)?, 0.0);
+        assert_eq!(diff(3, 5)?, 0.0);
+        assert!(diff(0, 3)? > 1e-3, "the two views were rotated alike");
         Ok(())
     }
 }

@@ -2,7 +2,8 @@
 use candle_core::{Module, Result, Tensor};
 use super::conv::{conv2d, Conv2d};
 use super::group_norm::{group_norm, GroupNorm};
-use candle_nn::{linear, Conv2dConfig, Linear, VarBuilder};
+use super::linear::{linear, Linear};
+use candle_nn::{Conv2dConfig, VarBuilder};
 
 fn conv3x3(vb: VarBuilder, i: usize, o: usize, stride: usize, padding: usize) -> Result<Conv2d> {
     conv2d(i, o, 3, Conv2dConfig { padding, stride, ..Default::default() }, vb)
@@ -34,18 +35,18 @@ impl ResnetBlock2D {
     }
 
     /// `temb` is the already SiLU-free time embedding [B, T]; the block applies SiLU itself.
+    /// The time projection enters conv1 as a per-image bias, the skip enters conv2 as a residual.
     pub fn forward(&self, x: &Tensor, temb: Option<&Tensor>) -> Result<Tensor> {
-        let mut h = self.conv1.forward(&self.norm1.forward(x)?.silu()?)?;
-        if let (Some(proj), Some(t)) = (&self.time_emb_proj, temb) {
-            let t = proj.forward(&t.silu()?)?.unsqueeze(2)?.unsqueeze(3)?;
-            h = h.broadcast_add(&t)?;
-        }
-        let h = self.conv2.forward(&self.norm2.forward(&h)?.silu()?)?;
-        let skip = match &self.conv_shortcut {
-            Some(c) => c.forward(x)?,
-            None => x.clone(),
+        let a = self.norm1.forward_silu(x)?;
+        let h = match (&self.time_emb_proj, temb) {
+            (Some(proj), Some(t)) => self.conv1.forward_plus(&a, &proj.forward(&t.silu()?)?)?,
+            _ => self.conv1.forward(&a)?,
         };
-        skip + h
+        let a = self.norm2.forward_silu(&h)?;
+        match &self.conv_shortcut {
+            Some(c) => self.conv2.forward_plus(&a, &c.forward(x)?),
+            None => self.conv2.forward_plus(&a, x),
+        }
     }
 }
 

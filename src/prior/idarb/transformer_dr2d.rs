@@ -4,11 +4,13 @@
 //! Per block: `attn1` is cross-domain attention (the domain images of one view attend jointly over
 //! 3·L tokens), `attn_mv` cross-view attention (the N views of one domain attend jointly over N·L
 //! tokens, CaPE on q and k), `attn2` text cross-attention, then a GEGLU feed-forward with erf GELU.
-use super::attention::Attention;
+use super::attention::{Attention, JointRows};
 use super::cape::apply_cape;
-use candle_core::{Module, Result, Tensor, D};
+use super::feed_forward::FeedForwardGeglu;
+use super::linear::{linear, Linear};
+use candle_core::{Module, Result, Tensor};
 use super::group_norm::{group_norm, GroupNorm};
-use candle_nn::{layer_norm, linear, LayerNorm, Linear, VarBuilder};
+use candle_nn::{layer_norm, LayerNorm, VarBuilder};
 
 /// LayerNorm eps of `norm1`, `norm_mv`, `norm2`, `norm3` (torch default).
 const LAYER_NORM_EPS: f64 = 1e-5;
@@ -22,28 +24,6 @@ pub struct MultiViewContext<'a> {
     pub num_domains: usize,
     /// [objects, views, 4] CaPE angles.
     pub pose: &'a Tensor,
-}
-
-/// diffusers `FeedForward` with GEGLU: `net.0.proj` (C → 2·4C), value · gelu_erf(gate), `net.2`.
-#[derive(Debug, Clone)]
-struct FeedForwardGeglu {
-    proj: Linear,
-    out: Linear,
-}
-
-impl FeedForwardGeglu {
-    fn new(vb: VarBuilder, dim: usize) -> Result<Self> {
-        let inner = 4 * dim;
-        Ok(Self { proj: linear(dim, 2 * inner, vb.pp("net.0.proj"))?, out: linear(inner, dim, vb.pp("net.2"))? })
-    }
-
-    fn forward(&self, x: &Tensor) -> Result<Tensor> {
-        let h = self.proj.forward(x)?;
-        let half = h.dim(D::Minus1)? / 2;
-        // value first, gate second (diffusers GEGLU chunk order); exact erf GELU, not tanh
-        let gated = (h.narrow(D::Minus1, 0, half)? * h.narrow(D::Minus1, half, half)?.gelu_erf()?)?;
-        self.out.forward(&gated)
-    }
 }
 
 /// IDArb `BasicDRTransformerBlock` (with `attn1_cd` and `attn_mid_cv` on, as released).
@@ -73,33 +53,19 @@ impl BasicDRTransformerBlock {
         })
     }
 
-    /// `x`: [B·N·3, L, C]; `context`: [B·N·3, 77, C_text].
+    /// `x`: [B·N·3, L, C] with rows (object, view, domain); `context`: [B·N·3, 77, C_text].
+    /// Each residual add happens inside the output projection before it.
     pub fn forward(&self, x: &Tensor, context: &Tensor, mv: &MultiViewContext) -> Result<Tensor> {
-        let (rows, l, c) = x.dims3()?;
         let (nd, nv) = (mv.num_domains, mv.num_views);
-        let objects = rows / (nv * nd);
-
-        // attn1, cross-domain: (B·N·3, L, C) → (B·N, 3L, C) is a contiguous regrouping.
-        let h = self.norm1.forward(x)?.reshape((rows / nd, nd * l, c))?;
-        let a = self.attn1.forward(&h, None)?.reshape((rows, l, c))?;
-        let x = (x + a)?;
-
-        // attn_mv, cross-view: (B,N,3,L,C) → (B,3,N,L,C) → (B·3, N·L, C), with CaPE on q and k.
-        let h = self.norm_mv.forward(&x)?;
-        let h = h.reshape((objects, nv, nd, l, c))?.permute((0, 2, 1, 3, 4))?.contiguous()?.reshape((objects * nd, nv * l, c))?;
-        let (q, k, v) = self.attn_mv.project(&h, None)?;
-        let q = apply_cape(&q, mv.pose, nd)?;
-        let k = apply_cape(&k, mv.pose, nd)?;
-        let a = self.attn_mv.attend(&q, &k, &v)?;
-        let a = a.reshape((objects, nd, nv, l, c))?.permute((0, 2, 1, 3, 4))?.contiguous()?.reshape((rows, l, c))?;
-        let x = (x + a)?;
-
+        // attn1, cross-domain: the domain rows of one view attend jointly over their 3·L tokens
+        let x = self.attn1.forward_plus(&self.norm1.forward(x)?, None, JointRows { blocks: nd, stride: 1 }, x)?;
+        // attn_mv, cross-view: one domain's rows of all N views jointly, CaPE on q and k
+        let (q, k, v) = self.attn_mv.project(&self.norm_mv.forward(&x)?, None)?;
+        let (q, k) = (apply_cape(&q, mv.pose, nd)?, apply_cape(&k, mv.pose, nd)?);
+        let x = self.attn_mv.attend_plus(&q, &k, &v, JointRows { blocks: nv, stride: nd }, &x)?;
         // attn2, text cross-attention
-        let a = self.attn2.forward(&self.norm2.forward(&x)?, Some(context))?;
-        let x = (x + a)?;
-
-        let f = self.ff.forward(&self.norm3.forward(&x)?)?;
-        x + f
+        let x = self.attn2.forward_plus(&self.norm2.forward(&x)?, Some(context), JointRows::OWN, &x)?;
+        self.ff.forward_plus(&self.norm3.forward(&x)?, &x)
     }
 }
 

@@ -6,7 +6,8 @@ use anyhow::{bail, Context};
 use candle_core::{Module, Result, Tensor};
 use super::conv::{conv2d, Conv2d};
 use super::group_norm::{group_norm, GroupNorm};
-use candle_nn::{linear, Conv2dConfig, Linear, VarBuilder};
+use super::linear::{linear, Linear};
+use candle_nn::{Conv2dConfig, VarBuilder};
 use serde_json::Value;
 use std::path::Path;
 
@@ -206,7 +207,7 @@ impl UNetDR2DConditionModel {
         for block in &self.up_blocks {
             h = block.forward(&h, &mut skips, &emb, context, &mv)?;
         }
-        let h = self.conv_norm_out.forward(&h)?.silu()?;
+        let h = self.conv_norm_out.forward_silu(&h)?;
         self.conv_out.forward(&h)?.to_dtype(dtype)
     }
 
