@@ -30,7 +30,7 @@ fn hotdog() -> Option<Hotdog> {
         return None;
     }
     let dataset = Dataset::load(&dir).expect("hotdog dataset loads");
-    let mesh = load_ground_truth(&dir.join("gt")).expect("hotdog gt loads");
+    let mesh = load_ground_truth(dir.join("gt")).expect("hotdog gt loads");
     let bvh = Bvh::build(&mesh);
     let probe = Probe::load(&probe, 3.0).expect("probe 2163 loads").radiance_image();
     Some(Hotdog { dataset, mesh, bvh, probe })

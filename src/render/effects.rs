@@ -222,7 +222,7 @@ pub fn choose(switches: EffectSwitches, mesh: &Mesh, bvh: &Bvh, views: &[GBuffer
             reasons.push(format!(
                 "interreflection {} (auto): up to {:.1}% of the light on the visible surface is reflected by the object itself ({}; threshold {:.0}%)",
                 if on { "on" } else { "off" },
-                100.0 * share,
+                100.0 * share.max(0.0),
                 if materials_known { "blocked hemisphere × the albedo blocking it" } else { "blocked hemisphere, materials unknown so occluders count as white" },
                 100.0 * INTERREFLECTION_THRESHOLD
             ));
