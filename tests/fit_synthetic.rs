@@ -216,7 +216,7 @@ fn simulating_interreflection_recovers_the_albedo_that_direct_light_overestimate
     let with = fitted_albedo_psnr(&s, cfg.clone(), s.effects)?;
     let without = fitted_albedo_psnr(&s, cfg, Effects::DIRECT)?;
     eprintln!("albedo PSNR on covered texels: {with:.2} dB with 3 bounces, {without:.2} dB with direct light only");
-    // Measured 23.3 dB with bounces, 13.4 dB direct only (that fit brightens the walls and the
+    // Measured 23.2 dB with bounces, 13.4 dB direct only (that fit brightens the walls and the
     // ball's underside to explain the light they reflect onto each other). The bound keeps a
     // third of the gap.
     assert!(with > without + 3.0, "interreflection {with:.2} dB vs direct only {without:.2} dB");
