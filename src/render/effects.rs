@@ -142,7 +142,10 @@ pub fn visible_hemisphere_hits(bvh: &Bvh, views: &[GBuffer], rays: usize, seed: 
 
 /// Fraction of those rays the object itself blocks: its visible ambient occlusion.
 pub fn visible_self_occlusion(bvh: &Bvh, views: &[GBuffer], rays: usize, seed: u64) -> f32 {
-    let hits = visible_hemisphere_hits(bvh, views, rays, seed);
+    occlusion_of(&visible_hemisphere_hits(bvh, views, rays, seed))
+}
+
+fn occlusion_of(hits: &[Option<Hit>]) -> f32 {
     hits.iter().filter(|h| h.is_some()).count() as f32 / hits.len().max(1) as f32
 }
 
@@ -151,7 +154,10 @@ pub fn visible_self_occlusion(bvh: &Bvh, views: &[GBuffer], rays: usize, seed: u
 /// (luminance of kd(1−m)) of the surface they hit, 0 for rays that escape. With unknown materials
 /// (`None`) every blocking surface counts as white: the share is bounded by the occlusion.
 pub fn interreflection_share(mesh: &Mesh, bvh: &Bvh, materials: Option<&dyn MaterialField>, views: &[GBuffer], rays: usize, seed: u64) -> f32 {
-    let hits = visible_hemisphere_hits(bvh, views, rays, seed);
+    share_of(mesh, materials, &visible_hemisphere_hits(bvh, views, rays, seed))
+}
+
+fn share_of(mesh: &Mesh, materials: Option<&dyn MaterialField>, hits: &[Option<Hit>]) -> f32 {
     let albedo = |h: &Hit| -> f32 {
         let Some(m) = materials else { return 1.0 };
         let [i0, i1, i2] = mesh.triangles[h.triangle as usize].map(|i| i as usize);
@@ -159,7 +165,8 @@ pub fn interreflection_share(mesh: &Mesh, bvh: &Bvh, materials: Option<&dyn Mate
         let p = m.at(h.triangle, uv);
         (p.kd * (1.0 - p.metallic)).dot(Vec3::new(0.2126, 0.7152, 0.0722))
     };
-    hits.iter().flatten().map(albedo).sum::<f32>() / hits.len().max(1) as f32
+    // fold from +0: an empty float sum is −0, which would print as "-0.0%".
+    hits.iter().flatten().map(albedo).fold(0.0, |sum, a| sum + a) / hits.len().max(1) as f32
 }
 
 /// A switch the scene set explicitly: its value, with the reason recorded.
@@ -175,10 +182,13 @@ fn set_by_scene(effect: &str, switch: Switch, reasons: &mut Vec<String>) -> bool
 /// `views` are G-buffers of a few training cameras: the surface that matters is the surface seen.
 pub fn choose(switches: EffectSwitches, mesh: &Mesh, bvh: &Bvh, views: &[GBuffer], materials_known: bool) -> EffectChoice {
     let mut reasons = Vec::new();
+    // Occlusion and interreflection are judged from the same hemisphere rays: trace them once.
+    let hits = std::cell::OnceCell::new();
+    let hits = || hits.get_or_init(|| visible_hemisphere_hits(bvh, views, 4000, 1)).as_slice();
     let shadows = match switches.shadows {
         Switch::On | Switch::Off => set_by_scene("shadows", switches.shadows, &mut reasons),
         Switch::Auto => {
-            let occ = visible_self_occlusion(bvh, views, 4000, 1);
+            let occ = occlusion_of(hits());
             let on = occ >= SHADOW_OCCLUSION_THRESHOLD;
             reasons.push(format!(
                 "shadows {} (auto): the object blocks {:.1}% of the hemisphere above its visible surface (threshold {:.0}%)",
@@ -217,12 +227,12 @@ pub fn choose(switches: EffectSwitches, mesh: &Mesh, bvh: &Bvh, views: &[GBuffer
         Switch::On | Switch::Off => set_by_scene("interreflection", switches.interreflection, &mut reasons),
         Switch::Auto => {
             let known: Option<&dyn MaterialField> = if materials_known { Some(mesh) } else { None };
-            let share = interreflection_share(mesh, bvh, known, views, 4000, 1);
+            let share = share_of(mesh, known, hits());
             let on = share >= INTERREFLECTION_THRESHOLD;
             reasons.push(format!(
                 "interreflection {} (auto): up to {:.1}% of the light on the visible surface is reflected by the object itself ({}; threshold {:.0}%)",
                 if on { "on" } else { "off" },
-                100.0 * share.max(0.0),
+                100.0 * share,
                 if materials_known { "blocked hemisphere × the albedo blocking it" } else { "blocked hemisphere, materials unknown so occluders count as white" },
                 100.0 * INTERREFLECTION_THRESHOLD
             ));
