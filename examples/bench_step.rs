@@ -17,6 +17,7 @@ use reconstruct::fit::fitter::Fit;
 use reconstruct::fit::parameters::Parameters;
 use reconstruct::fit::export::{write_light, write_model};
 use reconstruct::image::io::write_exr;
+use reconstruct::fit::geometry_pass::GeometryPassConfig;
 use reconstruct::jobs::reconstruct::{prepare, shading_context, GeometrySource, Prepared};
 use reconstruct::jobs::render::ground_truth_mesh;
 use reconstruct::light::CubeMap;
@@ -49,7 +50,7 @@ fn median(mut v: Vec<f64>) -> f64 {
 
 fn main() -> Result<()> {
     let args = Args::parse();
-    let prepared = prepare(&args.scene, None, GeometrySource::GroundTruth, args.texture_res, 1)?;
+    let prepared = prepare(&args.scene, None, GeometrySource::GroundTruth, &GeometryPassConfig::default(), &FitConfig { texture_res: args.texture_res, ..FitConfig::default() }, 1, false)?;
     // One view, the first training view, as the Mitsuba script uses.
     let view = prepared.views[0].clone();
     println!(

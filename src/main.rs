@@ -5,6 +5,7 @@ use std::path::PathBuf;
 use anyhow::Result;
 use clap::{Parser, Subcommand, ValueEnum};
 use reconstruct::fit::config::FitConfig;
+use reconstruct::fit::geometry_pass::GeometryPassConfig;
 use reconstruct::jobs::ablation;
 use reconstruct::prior::source::PriorSource;
 use reconstruct::jobs::reconstruct::{run as run_job, GeometrySource, ReconstructOptions};
@@ -30,8 +31,22 @@ struct Cli {
 
 #[derive(Clone, Copy, ValueEnum)]
 enum Geometry {
+    /// The scene's mesh when its data has one, else reconstructed from the images.
+    Auto,
     /// The scene's ground-truth mesh.
     Gt,
+    /// Reconstructed from the training images: visual hull of the masks, then the geometry pass.
+    Reconstruct,
+}
+
+impl Geometry {
+    fn source(self) -> GeometrySource {
+        match self {
+            Geometry::Auto => GeometrySource::Auto,
+            Geometry::Gt => GeometrySource::GroundTruth,
+            Geometry::Reconstruct => GeometrySource::Reconstruct,
+        }
+    }
 }
 
 #[derive(Clone, Copy, ValueEnum)]
@@ -65,8 +80,12 @@ struct ReconstructArgs {
     /// Label source of the prior: none, idarb, labels:DIR, oracle, idarb-sim[:LEVEL].
     #[arg(long, default_value = "none")]
     prior: String,
-    #[arg(long, value_enum, default_value = "gt")]
+    /// Where the mesh comes from.
+    #[arg(long, value_enum, default_value = "auto")]
     geometry: Geometry,
+    /// Iterations of the geometry pass (when the geometry is reconstructed).
+    #[arg(long)]
+    geometry_iterations: Option<usize>,
     /// Shading during optimisation.
     #[arg(long, value_enum, default_value = "auto")]
     mode: TrainMode,
@@ -141,6 +160,12 @@ enum Command {
         scene: String,
         #[arg(long, default_value_t = 300)]
         iterations: usize,
+        /// Where the mesh comes from (one geometry pass serves all rows: the prior does not enter it).
+        #[arg(long, value_enum, default_value = "reconstruct")]
+        geometry: Geometry,
+        /// Iterations of the geometry pass.
+        #[arg(long)]
+        geometry_iterations: Option<usize>,
         /// Shading during optimisation.
         #[arg(long, value_enum, default_value = "auto")]
         mode: TrainMode,
@@ -204,9 +229,11 @@ fn reconstruct(a: ReconstructArgs) -> Result<()> {
     if let Some(v) = a.prior_metallic { fit.prior.metallic = v; }
     let prior: PriorSource = a.prior.parse()?;
     let mode_tag = match fixed_mode { None => "auto", Some(ShadingMode::SplitSum) => "splitsum", Some(ShadingMode::MonteCarlo) => "mc" };
-    let out = a.out.unwrap_or_else(|| PathBuf::from(format!("runs/{}-{}-{mode_tag}", a.scene, a.prior.replace([':', '/'], "_"))));
-    let geometry = match a.geometry { Geometry::Gt => GeometrySource::GroundTruth };
-    let opts = ReconstructOptions { scene: a.scene, data: a.data, geometry, fit, eval_spp: a.eval_spp, out: out.clone(), progress: !a.quiet, labelled_views: a.labelled_views, idarb_weights: a.idarb_weights, effects_override: None, eval_test_views: None, auto_mode: fixed_mode.is_none() };
+    let geometry = a.geometry.source();
+    let out = a.out.unwrap_or_else(|| PathBuf::from(format!("runs/{}-{}-{}-{mode_tag}", a.scene, geometry.tag(), a.prior.replace([':', '/'], "_"))));
+    let mut geometry_pass = GeometryPassConfig::default();
+    if let Some(v) = a.geometry_iterations { geometry_pass.iterations = v; }
+    let opts = ReconstructOptions { scene: a.scene, data: a.data, geometry, geometry_pass, fit, eval_spp: a.eval_spp, out: out.clone(), progress: !a.quiet, labelled_views: a.labelled_views, idarb_weights: a.idarb_weights, effects_override: None, eval_test_views: None, auto_mode: fixed_mode.is_none() };
     let report = run_job(&opts, &prior)?;
     println!("{}", report.summary());
     println!("wrote {}", out.display());
@@ -217,11 +244,13 @@ fn main() -> Result<()> {
     let cli = Cli::parse();
     let Some(command) = cli.command else { return reconstruct(cli.reconstruct) };
     match command {
-        Command::Ablation { scene, iterations, mode, spp, sweep, eval_spp, out } => {
+        Command::Ablation { scene, iterations, geometry, geometry_iterations, mode, spp, sweep, eval_spp, out } => {
             let out = out.unwrap_or_else(|| ablation::default_out(&scene));
             let fixed_mode = mode.fixed();
             let fit = FitConfig { mode: fixed_mode.unwrap_or(ShadingMode::SplitSum), iterations, spp, ..FitConfig::default() };
-            let base = ReconstructOptions { auto_mode: fixed_mode.is_none(), ..ReconstructOptions::new(&scene, fit, eval_spp, out.clone()) };
+            let mut geometry_pass = GeometryPassConfig::default();
+            if let Some(v) = geometry_iterations { geometry_pass.iterations = v; }
+            let base = ReconstructOptions { auto_mode: fixed_mode.is_none(), geometry: geometry.source(), geometry_pass, ..ReconstructOptions::new(&scene, fit, eval_spp, out.clone()) };
             let sources = vec![PriorSource::None, PriorSource::IdarbSim(1.0), PriorSource::Oracle];
             let report = ablation::run(&ablation::AblationOptions { base, sources, sweep })?;
             println!("{}", report.markdown());

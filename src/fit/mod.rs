@@ -8,6 +8,7 @@ pub mod config;
 pub mod evaluate;
 pub mod export;
 pub mod fitter;
+pub mod geometry_pass;
 pub mod history;
 pub mod labels;
 pub mod objective;

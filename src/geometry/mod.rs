@@ -3,6 +3,7 @@
 pub mod atlas;
 pub mod bvh;
 pub mod gltf_io;
+pub mod icosphere;
 pub mod mesh;
 pub mod obj;
 pub mod primitives;

@@ -14,7 +14,7 @@ use crate::fit::evaluate::Evaluation;
 use crate::prior::source::PriorSource;
 use crate::report::plot::{write_line_plot, LinePlot, Series};
 
-use super::reconstruct::{prepare, prior_context, run_prepared, views_with_prior, GeometrySource, ReconstructOptions};
+use super::reconstruct::{prepare, prior_context, run_prepared, views_with_prior, ReconstructOptions};
 
 #[derive(Clone, Debug)]
 pub struct AblationOptions {
@@ -85,7 +85,7 @@ impl AblationReport {
 pub fn run(opts: &AblationOptions) -> Result<AblationReport> {
     let base = &opts.base;
     std::fs::create_dir_all(&base.out).with_context(|| format!("cannot create {}", base.out.display()))?;
-    let prepared = prepare(&base.scene, base.data.as_ref(), GeometrySource::GroundTruth, base.fit.texture_res, 1)?;
+    let prepared = prepare(&base.scene, base.data.as_ref(), base.geometry, &base.geometry_pass, &base.fit, 1, base.progress)?;
     let ctx = prior_context(&prepared, base.fit.seed, base.idarb_weights.clone());
     let mut sources = opts.sources.clone();
     for &l in &opts.sweep {

@@ -2,6 +2,7 @@
 //! parses arguments and prints.
 
 pub mod ablation;
+pub mod geometry;
 pub mod reconstruct;
 pub mod report_markdown;
 pub mod render;

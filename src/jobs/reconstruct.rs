@@ -26,7 +26,12 @@ use crate::fit::parameters::Parameters;
 use crate::fit::training_view::TrainingView;
 use crate::geometry::atlas::{self, Atlas, AtlasSource};
 use crate::geometry::bvh::Bvh;
-use crate::jobs::render::ground_truth_mesh;
+pub use crate::jobs::geometry::GeometrySource;
+use crate::jobs::geometry::{obtain_geometry, GeometryReport};
+use crate::fit::geometry_pass::{interpolate, transfer_vertex_values, GeometryPassConfig};
+use crate::material::texture_maps::MaterialTextures;
+use crate::material::SurfaceParams;
+use crate::light::CubeMap;
 use crate::jobs::report_markdown::{markdown, write_plots};
 use crate::light::brdf_lut::BrdfLut;
 use crate::light::prefilter::PrefilterOptions;
@@ -37,19 +42,13 @@ use crate::render::view::{ray_epsilon, ShadingMode};
 use crate::scene::dataset::Dataset;
 use crate::scene::SceneSpec;
 
-/// Where the geometry comes from.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
-#[serde(rename_all = "kebab-case")]
-pub enum GeometrySource {
-    /// The scene's ground-truth mesh (NVDiffRecMC's second pass on known geometry).
-    GroundTruth,
-}
-
 #[derive(Clone, Debug)]
 pub struct ReconstructOptions {
     pub scene: String,
     pub data: Option<PathBuf>,
     pub geometry: GeometrySource,
+    /// Settings of the geometry pass (used when the geometry is reconstructed).
+    pub geometry_pass: GeometryPassConfig,
     pub fit: FitConfig,
     /// Monte Carlo samples of the evaluation renders.
     pub eval_spp: u32,
@@ -87,6 +86,7 @@ impl ReconstructOptions {
             scene: scene.to_string(),
             data: None,
             geometry: GeometrySource::GroundTruth,
+            geometry_pass: GeometryPassConfig::default(),
             fit,
             eval_spp,
             out,
@@ -106,14 +106,22 @@ pub struct Prepared {
     pub dataset: Dataset,
     pub atlas: Atlas,
     pub bvh: Arc<Bvh>,
+    /// Where the mesh came from, and the reconstruction's records.
+    pub geometry: GeometryReport,
+    /// The visual hull, when the geometry was reconstructed (for the geometry metrics).
+    pub hull: Option<crate::geometry::Mesh>,
+    /// Starting textures baked from the geometry pass's per-vertex colour (reconstruction only).
+    pub initial_textures: Option<MaterialTextures>,
     pub effects: EffectChoice,
     pub views: Vec<TrainingView>,
     pub stage_seconds: Vec<(String, f64)>,
 }
 
-/// Load the scene, build the atlas and BVH, choose the effects, trace the training views.
-/// `downscale` > 1 trains on views `downscale`× smaller (box-filtered targets).
-pub fn prepare(scene: &str, data: Option<&PathBuf>, geometry: GeometrySource, texture_res: usize, downscale: usize) -> Result<Prepared> {
+/// Load the scene, obtain the geometry (the scene's mesh or reconstructed), build the atlas and
+/// BVH, choose the effects, trace the training views. `downscale` > 1 trains on views
+/// `downscale`× smaller (box-filtered targets).
+pub fn prepare(scene: &str, data: Option<&PathBuf>, geometry: GeometrySource, pass: &GeometryPassConfig, fit: &FitConfig, downscale: usize, progress: bool) -> Result<Prepared> {
+    let texture_res = fit.texture_res;
     let mut stages = Vec::new();
     let t = Instant::now();
     let mut spec = SceneSpec::find(scene)?;
@@ -124,12 +132,22 @@ pub fn prepare(scene: &str, data: Option<&PathBuf>, geometry: GeometrySource, te
     stages.push(("load scene".to_string(), t.elapsed().as_secs_f64()));
 
     let t = Instant::now();
-    let mesh = match geometry {
-        GeometrySource::GroundTruth => ground_truth_mesh(&spec)?,
-    };
+    let outcome = obtain_geometry(&spec, &dataset, geometry, pass, progress)?;
+    stages.push(("geometry".to_string(), t.elapsed().as_secs_f64()));
+    let t = Instant::now();
+    let mesh = outcome.mesh;
     let atlas = atlas::build(&mesh, texture_res).with_context(|| format!("building the UV atlas of scene {:?}", spec.name))?;
     let bvh = Arc::new(Bvh::build(&atlas.mesh));
-    stages.push(("mesh, atlas, BVH".to_string(), t.elapsed().as_secs_f64()));
+    // The geometry pass's colour, baked into the atlas: the material pass starts from it.
+    let initial_textures = outcome.vertex_kd.as_ref().map(|kd| {
+        let kd = transfer_vertex_values(&mesh, kd, &atlas.mesh);
+        MaterialTextures::bake_with(&atlas, texture_res, |t, b| SurfaceParams {
+            kd: interpolate(&atlas.mesh, &kd, t, glam::Vec2::new(b.y, b.z)),
+            roughness: fit.init_roughness,
+            metallic: fit.init_metallic,
+        })
+    });
+    stages.push(("atlas, BVH".to_string(), t.elapsed().as_secs_f64()));
 
     let t = Instant::now();
     // Materials are what we solve for, so `auto` may not look at the ground-truth ones.
@@ -150,7 +168,7 @@ pub fn prepare(scene: &str, data: Option<&PathBuf>, geometry: GeometrySource, te
         bail!("no training view of scene {:?} sees the mesh: check the cameras and the geometry", spec.name);
     }
     stages.push(("trace training views".to_string(), t.elapsed().as_secs_f64()));
-    Ok(Prepared { spec, dataset, atlas, bvh, effects, views, stage_seconds: stages })
+    Ok(Prepared { spec, dataset, atlas, bvh, geometry: outcome.report, hull: outcome.hull, initial_textures, effects, views, stage_seconds: stages })
 }
 
 /// The shading context of a run on `prepared` with `config`.
@@ -173,7 +191,7 @@ pub fn shading_context(prepared: &Prepared, config: &FitConfig) -> ShadingContex
 pub struct ReconstructReport {
     pub scene: String,
     pub data_dir: PathBuf,
-    pub geometry: GeometrySource,
+    pub geometry: GeometryReport,
     pub atlas: String,
     pub effects: EffectChoice,
     /// The training shading mode and why (chosen by the user or from the effects).
@@ -212,7 +230,11 @@ pub fn run_prepared(prepared: &Prepared, views: Vec<TrainingView>, opts: &Recons
     }
     let mut ctx = shading_context(prepared, &config);
     ctx.effects = effects;
-    let mut fit = Fit::new(config.clone(), Parameters::initial(&config)?, views, ctx)?;
+    let start = match &prepared.initial_textures {
+        Some(t) => Parameters::from_values(t, &CubeMap::constant(config.light_res, glam::Vec3::splat(config.init_light)))?,
+        None => Parameters::initial(&config)?,
+    };
+    let mut fit = Fit::new(config.clone(), start, views, ctx)?;
     let checkpoint_dir = opts.out.join("checkpoint");
     if fit.resume(&checkpoint_dir)? && opts.progress {
         eprintln!("resuming from {} at iteration {}", checkpoint_dir.display(), fit.iteration());
@@ -255,7 +277,7 @@ pub fn run_prepared(prepared: &Prepared, views: Vec<TrainingView>, opts: &Recons
     let report = ReconstructReport {
         scene: prepared.spec.name.clone(),
         data_dir: prepared.spec.data_dir.clone(),
-        geometry: opts.geometry,
+        geometry: prepared.geometry.clone(),
         atlas: atlas_description(&prepared.atlas),
         effects: prepared.effects.clone(),
         training_mode,
@@ -316,7 +338,7 @@ pub fn prior_context(prepared: &Prepared, seed: u64, idarb_weights: Option<PathB
 
 /// Prepare the scene and run (the `reconstruct` command).
 pub fn run(opts: &ReconstructOptions, prior: &PriorSource) -> Result<ReconstructReport> {
-    let prepared = prepare(&opts.scene, opts.data.as_ref(), opts.geometry, opts.fit.texture_res, 1)?;
+    let prepared = prepare(&opts.scene, opts.data.as_ref(), opts.geometry, &opts.geometry_pass, &opts.fit, 1, opts.progress)?;
     if opts.progress {
         eprintln!("scene {}: {} training views; atlas: {}", prepared.spec.name, prepared.views.len(), atlas_description(&prepared.atlas));
         eprintln!("effects: {}", prepared.effects);

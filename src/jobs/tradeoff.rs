@@ -16,7 +16,7 @@ use crate::render::view::ShadingMode;
 use crate::report::pareto::pareto_front;
 use crate::report::plot::{write_pareto_plot, ScatterPoint};
 
-use super::reconstruct::{prepare, prior_context, run_prepared, views_with_prior, GeometrySource, Prepared, ReconstructOptions};
+use super::reconstruct::{prepare, prior_context, run_prepared, views_with_prior, Prepared, ReconstructOptions};
 
 #[derive(Clone, Debug, Serialize)]
 pub struct TradeoffPoint {
@@ -88,7 +88,7 @@ pub fn run(base: &ReconstructOptions, points: &[TradeoffPoint]) -> Result<Vec<Tr
     let mut results = Vec::new();
     for (k, pt) in points.iter().enumerate() {
         if !prepared.iter().any(|(d, _)| *d == pt.downscale) {
-            prepared.push((pt.downscale, prepare(&base.scene, base.data.as_ref(), GeometrySource::GroundTruth, base.fit.texture_res, pt.downscale)?));
+            prepared.push((pt.downscale, prepare(&base.scene, base.data.as_ref(), base.geometry, &base.geometry_pass, &base.fit, pt.downscale, base.progress)?));
         }
         let prep = &prepared.iter().find(|(d, _)| *d == pt.downscale).expect("prepared above").1;
         let source: PriorSource = pt.prior.parse()?;

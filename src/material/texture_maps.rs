@@ -39,21 +39,29 @@ impl MaterialTextures {
 
     /// Rasterise every atlas triangle and evaluate the ORIGINAL mesh's part material at the
     /// barycentric-interpolated original UV. `mesh` is the mesh the atlas was built from (same
-    /// triangle order). Texels a bilinear lookup can touch are filled conservatively from the
-    /// closest point of their chart; the rest of the border is dilated by a few texels.
+    /// triangle order).
     pub fn bake_from(mesh: &Mesh, atlas: &Atlas, res: usize) -> Result<Self> {
         if mesh.triangles.len() != atlas.mesh.triangles.len() {
             bail!("bake: the atlas has {} triangles but the material mesh has {}", atlas.mesh.triangles.len(), mesh.triangles.len());
         }
         mesh.validate().map_err(|e| anyhow::anyhow!("bake: invalid material mesh: {e}"))?;
+        Ok(Self::bake_with(atlas, res, |t, bary| {
+            let [a, b, c] = mesh.triangles[t].map(|i| mesh.uvs[i as usize]);
+            mesh.triangle_material(t).eval(a * bary.x + b * bary.y + c * bary.z)
+        }))
+    }
+
+    /// Rasterise every atlas triangle and fill each texel with `material(triangle, barycentrics
+    /// (b0, b1, b2))` of the surface point it shows. Texels a bilinear lookup can touch are filled
+    /// conservatively from the closest point of their chart; the rest of the border is dilated by
+    /// a few texels.
+    pub fn bake_with(atlas: &Atlas, res: usize, material: impl Fn(usize, Vec3) -> SurfaceParams + Sync) -> Self {
         let hits = texel_hits(&atlas.mesh, res, CONSERVATIVE_REACH);
         let mut kd = Image::new(res, res, 3);
         let mut ks = Image::new(res, res, 3);
         kd.data.par_chunks_mut(3).zip(ks.data.par_chunks_mut(3)).zip(hits.par_iter()).for_each(|((kd, ks), hit)| {
             if let Some(h) = hit {
-                let [a, b, c] = mesh.triangles[h.triangle as usize].map(|i| mesh.uvs[i as usize]);
-                let uv = a * h.bary.x + b * h.bary.y + c * h.bary.z;
-                let p = mesh.triangle_material(h.triangle as usize).eval(uv);
+                let p = material(h.triangle as usize, h.bary);
                 kd.copy_from_slice(&p.kd.to_array());
                 ks.copy_from_slice(&[0.0, p.roughness, p.metallic]);
             }
@@ -61,7 +69,7 @@ impl MaterialTextures {
         let mask: Vec<bool> = hits.iter().map(Option::is_some).collect();
         dilate(&mut kd, &mask, BAKE_DILATION);
         dilate(&mut ks, &mask, BAKE_DILATION);
-        Ok(MaterialTextures { kd, ks })
+        MaterialTextures { kd, ks }
     }
 
     /// Bilinear lookup at an atlas UV (OBJ convention, v = 0 at the bottom row; clamped to the

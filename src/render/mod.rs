@@ -5,6 +5,7 @@ pub mod effects;
 pub mod gbuffer;
 pub mod montecarlo;
 pub mod montecarlo_op;
+pub mod sh_light;
 pub mod silhouette_op;
 pub mod splitsum;
 pub mod splitsum_op;

@@ -1,0 +1,192 @@
+//! The geometry stage of a run: where the mesh comes from, and what the material pass starts
+//! from. Either the scene's ground-truth mesh (NVDiffRecMC's second pass alone), or the shape
+//! reconstructed from the training images: the visual hull of the masks
+//! (`geometry::hull`), then the geometry pass (`fit::geometry_pass`), whose per-vertex colour
+//! becomes the material pass's starting textures.
+//!
+//! `auto` takes the scene's mesh when its data has one and reconstructs otherwise. The choice and
+//! its reason are printed and reported. With reconstruction nothing under the scene's
+//! ground-truth folder is read here: only the training images, their masks and cameras.
+
+use std::time::Instant;
+
+use anyhow::{Context, Result};
+use glam::Vec3;
+use serde::Serialize;
+
+use crate::fit::geometry_pass::{run_geometry_pass, GeometryPassConfig, GeometryStep, GeometryTimings, GeometryView};
+use crate::geometry::hull::{visual_hull, HullOptions, MaskView};
+use crate::geometry::Mesh;
+use crate::jobs::render::ground_truth_mesh;
+use crate::scene::dataset::Dataset;
+use crate::scene::SceneSpec;
+
+/// Where the geometry comes from.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum GeometrySource {
+    /// The scene's ground-truth mesh (NVDiffRecMC's second pass on known geometry).
+    GroundTruth,
+    /// Reconstructed from the training images: visual hull, then the geometry pass.
+    Reconstruct,
+    /// The scene's mesh when its data has one, else reconstructed.
+    Auto,
+}
+
+impl GeometrySource {
+    pub fn tag(self) -> &'static str {
+        match self {
+            GeometrySource::GroundTruth => "gt",
+            GeometrySource::Reconstruct => "reconstruct",
+            GeometrySource::Auto => "auto",
+        }
+    }
+}
+
+/// Training views are brought to at most this many pixels on their longer side for the geometry
+/// pass: the outline gradient lives on outline pixels (about 4·side of them per view), and 256
+/// already puts a pixel at ~1/200 of an object that fills the frame, finer than the hull's mesh.
+/// The material pass later trains on the full resolution.
+pub const GEOMETRY_MAX_SIDE: usize = 256;
+
+#[derive(Clone, Debug, Serialize)]
+pub struct HullRecord {
+    pub vertices: usize,
+    pub triangles: usize,
+    pub voxel_size: f32,
+    pub target_edge: f32,
+    pub summary: String,
+    pub seconds: f64,
+}
+
+#[derive(Clone, Debug, Serialize)]
+pub struct PassRecord {
+    pub config: GeometryPassConfig,
+    pub views: usize,
+    pub resolution: [usize; 2],
+    pub seconds: f64,
+    pub timings: GeometryTimings,
+    pub history: Vec<GeometryStep>,
+}
+
+/// What the run reports about its geometry.
+#[derive(Clone, Debug, Serialize)]
+pub struct GeometryReport {
+    /// `ground-truth` or `reconstruct` (what was used, after `auto`).
+    pub used: GeometrySource,
+    pub why: String,
+    pub hull: Option<HullRecord>,
+    pub pass: Option<PassRecord>,
+}
+
+/// The stage's result.
+pub struct GeometryOutcome {
+    pub mesh: Mesh,
+    /// The geometry pass's per-vertex base colour (reconstruction only), for the starting textures.
+    pub vertex_kd: Option<Vec<Vec3>>,
+    /// The visual hull (reconstruction only), kept for the geometry metrics.
+    pub hull: Option<Mesh>,
+    pub report: GeometryReport,
+}
+
+/// Whether the scene's data has a mesh to use, without reading it.
+pub fn has_ground_truth_mesh(spec: &SceneSpec) -> bool {
+    if spec.generator.is_some() && spec.ground_truth.is_some() {
+        return true;
+    }
+    let Some(dir) = spec.gt_dir() else { return false };
+    std::fs::read_dir(&dir)
+        .map(|entries| {
+            entries.flatten().any(|e| {
+                let p = e.path();
+                matches!(p.extension().and_then(|x| x.to_str()), Some("obj" | "gltf" | "glb"))
+            })
+        })
+        .unwrap_or(false)
+}
+
+/// The geometry of a run on `dataset` from `source`.
+pub fn obtain_geometry(spec: &SceneSpec, dataset: &Dataset, source: GeometrySource, pass: &GeometryPassConfig, progress: bool) -> Result<GeometryOutcome> {
+    let (used, why) = match source {
+        GeometrySource::GroundTruth => (GeometrySource::GroundTruth, "set by the run (--geometry gt)".to_string()),
+        GeometrySource::Reconstruct => (GeometrySource::Reconstruct, "set by the run (--geometry reconstruct)".to_string()),
+        GeometrySource::Auto if has_ground_truth_mesh(spec) => {
+            (GeometrySource::GroundTruth, "auto: the scene's data has a ground-truth mesh".to_string())
+        }
+        GeometrySource::Auto => (GeometrySource::Reconstruct, "auto: the scene's data has no mesh, so it is reconstructed from the images".to_string()),
+    };
+    if progress {
+        eprintln!("geometry: {} ({why})", if used == GeometrySource::GroundTruth { "the scene's mesh" } else { "reconstructed from the images" });
+    }
+    if used == GeometrySource::GroundTruth {
+        let mesh = ground_truth_mesh(spec)?;
+        return Ok(GeometryOutcome { mesh, vertex_kd: None, hull: None, report: GeometryReport { used, why, hull: None, pass: None } });
+    }
+    reconstruct(dataset, pass, progress, why)
+}
+
+/// The training views brought to at most [`GEOMETRY_MAX_SIDE`] pixels (box filter over
+/// premultiplied colour, like the material pass's downscaling).
+fn geometry_views(dataset: &Dataset) -> Result<Vec<GeometryView>> {
+    dataset
+        .train
+        .iter()
+        .map(|v| {
+            let rgba = v.load_rgba().with_context(|| format!("geometry pass: training view {}", v.name))?;
+            let side = v.camera.width.max(v.camera.height);
+            let s = side.div_ceil(GEOMETRY_MAX_SIDE).max(1);
+            let s = if v.camera.width % s == 0 && v.camera.height % s == 0 { s } else { 1 };
+            if s == 1 {
+                return Ok(GeometryView { name: v.name.clone(), camera: v.camera.clone(), target: rgba });
+            }
+            let mut pre = rgba;
+            for p in pre.data.chunks_exact_mut(4) {
+                let a = p[3];
+                p[..3].iter_mut().for_each(|c| *c *= a);
+            }
+            let target = crate::render::view::unpremultiply(pre.downsample_box(s));
+            Ok(GeometryView { name: v.name.clone(), camera: v.camera.resized(v.camera.width / s, v.camera.height / s), target })
+        })
+        .collect()
+}
+
+fn reconstruct(dataset: &Dataset, pass: &GeometryPassConfig, progress: bool, why: String) -> Result<GeometryOutcome> {
+    let t = Instant::now();
+    let masks: Vec<MaskView> = dataset
+        .train
+        .iter()
+        .map(|v| Ok(MaskView { name: v.name.clone(), camera: v.camera.clone(), alpha: v.load_alpha().with_context(|| format!("mask of view {}", v.name))? }))
+        .collect::<Result<_>>()?;
+    let hull = visual_hull(&masks, &HullOptions::default()).context("visual hull of the training masks")?;
+    let hull_seconds = t.elapsed().as_secs_f64();
+    if progress {
+        eprintln!("visual hull: {} vertices, {} triangles in {hull_seconds:.1} s ({})", hull.mesh.positions.len(), hull.mesh.triangles.len(), hull.summary);
+    }
+    let hull_record = HullRecord {
+        vertices: hull.mesh.positions.len(),
+        triangles: hull.mesh.triangles.len(),
+        voxel_size: hull.voxel_size,
+        target_edge: hull.target_edge,
+        summary: hull.summary.clone(),
+        seconds: hull_seconds,
+    };
+
+    let t = Instant::now();
+    let views = geometry_views(dataset)?;
+    let resolution = [views[0].camera.width, views[0].camera.height];
+    let result = run_geometry_pass(&hull.mesh, &views, pass, progress).context("geometry pass")?;
+    let pass_record = PassRecord {
+        config: pass.clone(),
+        views: views.len(),
+        resolution,
+        seconds: t.elapsed().as_secs_f64(),
+        timings: result.timings.clone(),
+        history: result.history.clone(),
+    };
+    Ok(GeometryOutcome {
+        mesh: result.mesh,
+        vertex_kd: Some(result.vertex_kd),
+        hull: Some(hull.mesh),
+        report: GeometryReport { used: GeometrySource::Reconstruct, why, hull: Some(hull_record), pass: Some(pass_record) },
+    })
+}
