@@ -84,6 +84,110 @@ pub fn check_closed_manifold(mesh: &Mesh) -> Result<ClosedManifold, String> {
     Ok(ClosedManifold { vertices, edges, faces, euler: vertices as i64 - edges as i64 + faces as i64 })
 }
 
+/// Flips triangles so that every edge shared by two triangles is used in opposite directions (a
+/// breadth-first walk over edge neighbours from one triangle of each connected piece). Fails, naming
+/// the edge, when an edge has more than two triangles or when the surface cannot be oriented.
+pub fn orient_consistently(triangles: &mut [[u32; 3]]) -> Result<(), String> {
+    let key = |a: u32, b: u32| (a.min(b), a.max(b));
+    let mut by_edge: HashMap<(u32, u32), Vec<usize>> = HashMap::with_capacity(3 * triangles.len() / 2);
+    for (t, tri) in triangles.iter().enumerate() {
+        for k in 0..3 {
+            by_edge.entry(key(tri[k], tri[(k + 1) % 3])).or_default().push(t);
+        }
+    }
+    if let Some((e, ts)) = by_edge.iter().find(|(_, ts)| ts.len() > 2) {
+        return Err(format!("edge {}–{} is shared by {} triangles (non-manifold)", e.0, e.1, ts.len()));
+    }
+    // Whether triangle `t` runs along a→b (true) or b→a.
+    let runs = |tri: &[u32; 3], a: u32, b: u32| (0..3).any(|k| tri[k] == a && tri[(k + 1) % 3] == b);
+    let mut done = vec![false; triangles.len()];
+    let mut queue = std::collections::VecDeque::new();
+    for seed in 0..triangles.len() {
+        if done[seed] {
+            continue;
+        }
+        done[seed] = true;
+        queue.push_back(seed);
+        while let Some(t) = queue.pop_front() {
+            let tri = triangles[t];
+            for k in 0..3 {
+                let (a, b) = (tri[k], tri[(k + 1) % 3]);
+                for &u in &by_edge[&key(a, b)] {
+                    if u == t {
+                        continue;
+                    }
+                    let agrees = runs(&triangles[u], b, a);
+                    if done[u] {
+                        if !agrees {
+                            return Err(format!("the surface cannot be oriented (at edge {a}–{b}; a Möbius-like piece)"));
+                        }
+                        continue;
+                    }
+                    if !agrees {
+                        triangles[u].swap(1, 2);
+                    }
+                    done[u] = true;
+                    queue.push_back(u);
+                }
+            }
+        }
+    }
+    Ok(())
+}
+
+/// Gives each extra fan of a pinched vertex (one whose triangles form several fans, joined only at
+/// that point) its own copy of the vertex, so that the surface is manifold at its vertices as well as
+/// at its edges. Returns how many vertices were added.
+pub fn split_pinched_vertices(positions: &mut Vec<glam::Vec3>, triangles: &mut [[u32; 3]]) -> usize {
+    // Corners (3·triangle + k) around the same vertex join when their triangles share an edge there.
+    let mut parent: Vec<usize> = (0..3 * triangles.len()).collect();
+    fn root(parent: &mut [usize], mut i: usize) -> usize {
+        while parent[i] != i {
+            parent[i] = parent[parent[i]];
+            i = parent[i];
+        }
+        i
+    }
+    let mut by_edge: HashMap<(u32, u32), Vec<usize>> = HashMap::with_capacity(3 * triangles.len() / 2);
+    for (t, tri) in triangles.iter().enumerate() {
+        for k in 0..3 {
+            let (a, b) = (tri[k], tri[(k + 1) % 3]);
+            by_edge.entry((a.min(b), a.max(b))).or_default().push(t);
+        }
+    }
+    let corner_of = |t: usize, v: u32, tris: &[[u32; 3]]| 3 * t + tris[t].iter().position(|&x| x == v).expect("vertex of triangle");
+    for (&(a, b), ts) in &by_edge {
+        for pair in ts.windows(2) {
+            for v in [a, b] {
+                let (c0, c1) = (corner_of(pair[0], v, triangles), corner_of(pair[1], v, triangles));
+                let (r0, r1) = (root(&mut parent, c0), root(&mut parent, c1));
+                parent[r1] = r0;
+            }
+        }
+    }
+    // The first fan met keeps the vertex; later fans get copies.
+    let mut fan_vertex: HashMap<usize, u32> = HashMap::new();
+    let mut has_fan = vec![false; positions.len()];
+    let before = positions.len();
+    for t in 0..triangles.len() {
+        for k in 0..3 {
+            let v = triangles[t][k];
+            let r = root(&mut parent, 3 * t + k);
+            let id = *fan_vertex.entry(r).or_insert_with(|| {
+                if has_fan[v as usize] {
+                    positions.push(positions[v as usize]);
+                    (positions.len() - 1) as u32
+                } else {
+                    has_fan[v as usize] = true;
+                    v
+                }
+            });
+            triangles[t][k] = id;
+        }
+    }
+    positions.len() - before
+}
+
 /// Signed volume enclosed by a closed mesh (divergence theorem): positive when its triangles face outward.
 pub fn signed_volume(mesh: &Mesh) -> f64 {
     mesh.triangles
@@ -117,6 +221,50 @@ mod tests {
     }
 
     #[test]
+    fn orienting_repairs_flipped_triangles() {
+        let mut m = tetrahedron();
+        m.triangles[1].swap(0, 1);
+        m.triangles[3].swap(1, 2);
+        assert!(check_closed_manifold(&m).is_err());
+        orient_consistently(&mut m.triangles).unwrap();
+        check_closed_manifold(&m).unwrap();
+        // All four agree with each other; the walk starts from triangle 0, which was outward.
+        assert!(signed_volume(&m) > 0.0);
+    }
+
+    /// Two tetrahedra sharing one vertex.
+    fn pinched_pair() -> Mesh {
+        let mut pinched = tetrahedron();
+        let mut other = tetrahedron();
+        for p in &mut other.positions {
+            *p = -*p;
+        }
+        pinched.positions.extend(&other.positions[1..]);
+        pinched.normals.extend(&other.normals[1..]);
+        pinched.uvs.extend(&other.uvs[1..]);
+        for t in &other.triangles {
+            pinched.triangles.push(t.map(|i| if i == 0 { 0 } else { i + 3 }));
+            pinched.triangle_part.push(0);
+        }
+        pinched
+    }
+
+    #[test]
+    fn pinched_vertices_are_split_into_one_per_fan() {
+        let mut m = pinched_pair();
+        assert!(check_closed_manifold(&m).is_err());
+        assert_eq!(split_pinched_vertices(&mut m.positions, &mut m.triangles), 1);
+        m.normals.push(Vec3::Z);
+        m.uvs.push(glam::Vec2::ZERO);
+        let c = check_closed_manifold(&m).unwrap();
+        // Two separate tetrahedra: 8 vertices, 12 edges, 8 faces, Euler 2 + 2.
+        assert_eq!((c.vertices, c.edges, c.faces, c.euler), (8, 12, 8, 4));
+        // A manifold mesh is left alone.
+        let mut t = tetrahedron();
+        assert_eq!(split_pinched_vertices(&mut t.positions, &mut t.triangles), 0);
+    }
+
+    #[test]
     fn defects_are_named() {
         let mut open = tetrahedron();
         open.triangles.pop();
@@ -125,19 +273,7 @@ mod tests {
         flipped.triangles[0] = [0, 1, 2];
         assert!(check_closed_manifold(&flipped).is_err());
         // Two tetrahedra sharing only vertex 0: every edge is fine but vertex 0 has two fans.
-        let mut pinched = tetrahedron();
-        let mut other = tetrahedron();
-        for p in &mut other.positions {
-            *p = -*p;
-        }
-        let offset = 4;
-        pinched.positions.extend(&other.positions[1..]);
-        pinched.normals.extend(&other.normals[1..]);
-        pinched.uvs.extend(&other.uvs[1..]);
-        for t in &other.triangles {
-            pinched.triangles.push(t.map(|i| if i == 0 { 0 } else { i + offset - 1 }));
-            pinched.triangle_part.push(0);
-        }
+        let pinched = pinched_pair();
         assert!(check_closed_manifold(&pinched).unwrap_err().contains("more than one fan"));
     }
 
