@@ -33,8 +33,8 @@ pub fn check_closed_manifold(mesh: &Mesh) -> Result<ClosedManifold, String> {
             return Err(format!("triangle {t} {tri:?} repeats a vertex"));
         }
         let area2 = mesh.face_normal_scaled(t).length();
-        if !(area2 > 0.0) {
-            return Err(format!("triangle {t} {tri:?} has zero area"));
+        if !area2.is_finite() || area2 <= 0.0 {
+            return Err(format!("triangle {t} {tri:?} has zero or non-finite area"));
         }
         for k in 0..3 {
             used[tri[k] as usize] = true;
@@ -85,9 +85,10 @@ pub fn check_closed_manifold(mesh: &Mesh) -> Result<ClosedManifold, String> {
 }
 
 /// Flips triangles so that every edge shared by two triangles is used in opposite directions (a
-/// breadth-first walk over edge neighbours from one triangle of each connected piece). Fails, naming
-/// the edge, when an edge has more than two triangles or when the surface cannot be oriented.
-pub fn orient_consistently(triangles: &mut [[u32; 3]]) -> Result<(), String> {
+/// breadth-first walk over edge neighbours from one triangle of each connected piece); returns how
+/// many were flipped. Fails, naming the edge, when an edge has more than two triangles or when the
+/// surface cannot be oriented.
+pub fn orient_consistently(triangles: &mut [[u32; 3]]) -> Result<usize, String> {
     let key = |a: u32, b: u32| (a.min(b), a.max(b));
     let mut by_edge: HashMap<(u32, u32), Vec<usize>> = HashMap::with_capacity(3 * triangles.len() / 2);
     for (t, tri) in triangles.iter().enumerate() {
@@ -101,6 +102,7 @@ pub fn orient_consistently(triangles: &mut [[u32; 3]]) -> Result<(), String> {
     // Whether triangle `t` runs along a→b (true) or b→a.
     let runs = |tri: &[u32; 3], a: u32, b: u32| (0..3).any(|k| tri[k] == a && tri[(k + 1) % 3] == b);
     let mut done = vec![false; triangles.len()];
+    let mut flipped = 0;
     let mut queue = std::collections::VecDeque::new();
     for seed in 0..triangles.len() {
         if done[seed] {
@@ -125,6 +127,7 @@ pub fn orient_consistently(triangles: &mut [[u32; 3]]) -> Result<(), String> {
                     }
                     if !agrees {
                         triangles[u].swap(1, 2);
+                        flipped += 1;
                     }
                     done[u] = true;
                     queue.push_back(u);
@@ -132,7 +135,7 @@ pub fn orient_consistently(triangles: &mut [[u32; 3]]) -> Result<(), String> {
             }
         }
     }
-    Ok(())
+    Ok(flipped)
 }
 
 /// Gives each extra fan of a pinched vertex (one whose triangles form several fans, joined only at
@@ -169,9 +172,9 @@ pub fn split_pinched_vertices(positions: &mut Vec<glam::Vec3>, triangles: &mut [
     let mut fan_vertex: HashMap<usize, u32> = HashMap::new();
     let mut has_fan = vec![false; positions.len()];
     let before = positions.len();
-    for t in 0..triangles.len() {
-        for k in 0..3 {
-            let v = triangles[t][k];
+    for (t, tri) in triangles.iter_mut().enumerate() {
+        for (k, corner) in tri.iter_mut().enumerate() {
+            let v = *corner;
             let r = root(&mut parent, 3 * t + k);
             let id = *fan_vertex.entry(r).or_insert_with(|| {
                 if has_fan[v as usize] {
@@ -182,7 +185,7 @@ pub fn split_pinched_vertices(positions: &mut Vec<glam::Vec3>, triangles: &mut [
                     v
                 }
             });
-            triangles[t][k] = id;
+            *corner = id;
         }
     }
     positions.len() - before
@@ -226,7 +229,7 @@ mod tests {
         m.triangles[1].swap(0, 1);
         m.triangles[3].swap(1, 2);
         assert!(check_closed_manifold(&m).is_err());
-        orient_consistently(&mut m.triangles).unwrap();
+        assert_eq!(orient_consistently(&mut m.triangles).unwrap(), 2);
         check_closed_manifold(&m).unwrap();
         // All four agree with each other; the walk starts from triangle 0, which was outward.
         assert!(signed_volume(&m) > 0.0);
