@@ -1,8 +1,12 @@
-//! Meshes, their files (OBJ via tobj, glTF via gltf), and ray queries through a BVH (obvhs).
+//! Meshes, their files (OBJ via tobj, glTF via gltf), ray queries through a BVH (obvhs), and the
+//! visual hull of a set of masks (a starting shape when the data has no mesh).
 
 pub mod atlas;
 pub mod bvh;
 pub mod gltf_io;
+pub mod hull;
+pub mod manifold;
+pub mod mask_distance;
 pub mod icosphere;
 pub mod mesh;
 pub mod obj;
