@@ -1,11 +1,14 @@
-//! Meshes, their files (OBJ via tobj, glTF via gltf), and ray queries through a BVH (obvhs).
+//! Meshes, their files (OBJ via tobj, glTF via gltf), ray queries through a BVH (obvhs),
+//! closest-point queries (parry3d) and area-weighted surface samples.
 
 pub mod atlas;
 pub mod bvh;
+pub mod closest_point;
 pub mod gltf_io;
 pub mod mesh;
 pub mod obj;
 pub mod primitives;
+pub mod surface_samples;
 pub mod texture_file;
 
 pub use mesh::{Mesh, Part};
