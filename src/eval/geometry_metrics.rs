@@ -6,7 +6,7 @@
 //!   the reconstructed points some training view can judge (outside its mask, or inside and not
 //!   behind its depth map);
 //! - **completeness**: mean distance from the *visible* ground truth (points back-projected from the
-//!   training views' depth maps) to the reconstruction;
+//!   training views' depth maps, away from depth discontinuities) to the reconstruction;
 //! - precision / recall / F-score at a distance threshold, "Chamfer (visible)" (the mean of accuracy
 //!   and completeness) and normal consistency.
 //!
@@ -89,9 +89,31 @@ impl JudgeView {
         d > 0.0 && z <= d + tolerance
     }
 
-    /// Indices of the pixels with a surface point: inside the mask and with a positive depth.
-    fn surface_pixels(&self) -> impl Iterator<Item = usize> + '_ {
-        (0..self.depth.data.len()).filter(|&i| self.alpha.data[i] > MASK_THRESHOLD && self.depth.data[i] > 0.0 && self.depth.data[i].is_finite())
+    /// Whether pixel `i` shows a surface: inside the mask with a positive, finite depth.
+    fn has_surface(&self, i: usize) -> bool {
+        let d = self.depth.data[i];
+        self.alpha.data[i] > MASK_THRESHOLD && d > 0.0 && d.is_finite()
+    }
+
+    /// The pixels whose depth is a point of the surface: they show a surface, and no 4-neighbour
+    /// that shows one differs in depth by more than `tolerance`. A pixel across an occluding
+    /// outline may hold the depth of either side while its centre's ray meets the other, so its
+    /// back-projected point floats off every surface; such pixels are left out. Returns the kept
+    /// pixels and how many surface pixels were left out.
+    fn surface_pixels(&self, tolerance: f32) -> (Vec<usize>, usize) {
+        let (w, h) = (self.camera.width, self.camera.height);
+        let (mut kept, mut dropped) = (Vec::new(), 0);
+        for i in (0..w * h).filter(|&i| self.has_surface(i)) {
+            let (x, y) = (i % w, i / w);
+            let neighbours = [(x > 0).then(|| i - 1), (x + 1 < w).then(|| i + 1), (y > 0).then(|| i - w), (y + 1 < h).then(|| i + w)];
+            let d = self.depth.data[i];
+            if neighbours.into_iter().flatten().any(|j| self.has_surface(j) && (self.depth.data[j] - d).abs() > tolerance) {
+                dropped += 1;
+            } else {
+                kept.push(i);
+            }
+        }
+        (kept, dropped)
     }
 
     /// The world point seen at pixel `i`: along the pixel centre's ray, at its planar depth.
@@ -117,8 +139,9 @@ pub struct GeometryMetricOptions {
     /// The F-score distance, as a fraction of the ground-truth diagonal; a point at exactly this
     /// distance counts as within.
     pub threshold: f64,
-    /// How far behind a view's depth map a point may lie and still be judged by it, as a fraction
-    /// of the ground-truth diagonal.
+    /// How far behind a view's depth map a point may lie and still be judged by it, and the largest
+    /// depth step between neighbouring pixels of a visible ground-truth point, as a fraction of the
+    /// ground-truth diagonal.
     pub depth_tolerance: f64,
     pub seed: u64,
 }
@@ -159,6 +182,8 @@ pub struct GeometryMetrics {
     pub scored_points: usize,
     /// Pixels with a surface point over all views, and how many were drawn for completeness.
     pub visible_gt_pixels: usize,
+    /// Pixels inside the masks left out because they straddle a depth discontinuity.
+    pub outline_pixels: usize,
     pub visible_gt_points: usize,
     pub views: usize,
 }
@@ -209,8 +234,10 @@ pub fn geometry_metrics(recon: &Mesh, gt: &Mesh, views: &[JudgeView], opts: &Geo
     let (acc_d, cosines): (Vec<f64>, Vec<f64>) = judged.into_iter().unzip();
 
     // Completeness side: a seeded draw of the depth pixels of all views, back-projected.
+    let per_view: Vec<(Vec<usize>, usize)> = views.par_iter().map(|v| v.surface_pixels(tolerance)).collect();
+    let outline_pixels = per_view.iter().map(|(_, dropped)| dropped).sum();
     let pixels: Vec<(u32, u32)> =
-        views.iter().enumerate().flat_map(|(k, v)| v.surface_pixels().map(move |i| (k as u32, i as u32))).collect();
+        per_view.iter().enumerate().flat_map(|(k, (kept, _))| kept.iter().map(move |&i| (k as u32, i as u32))).collect();
     if pixels.is_empty() {
         bail!("the {} training views' depth maps show no surface inside their masks", views.len());
     }
@@ -244,6 +271,7 @@ pub fn geometry_metrics(recon: &Mesh, gt: &Mesh, views: &[JudgeView], opts: &Geo
         recon_points: samples.len(),
         scored_points: acc_d.len(),
         visible_gt_pixels: pixels.len(),
+        outline_pixels,
         visible_gt_points: comp_d.len(),
         views: views.len(),
     })
@@ -344,6 +372,8 @@ mod tests {
         assert!((m.diagonal - 3f64.sqrt()).abs() < 1e-6);
         // Frontal views judge every point of the face they look at.
         assert_eq!(m.scored_points, m.recon_points);
+        // A frontal view's depth is flat inside the face: no pixel straddles a discontinuity.
+        assert_eq!(m.outline_pixels, 0);
         assert!(m.accuracy < 1e-6 && m.completeness < 1e-6 && m.chamfer_visible < 1e-6, "{m:?}");
         assert!(m.fscore == 1.0 && m.precision == 1.0 && m.recall == 1.0, "{m:?}");
         assert!(m.normal_consistency > 0.9999, "{m:?}");
@@ -430,6 +460,20 @@ mod tests {
         let outer = sample_surface(&recon, n, 0).unwrap().iter().filter(|s| s.triangle < 12).count();
         assert_eq!(m.scored_points, outer, "{m:?}");
         assert!(m.scored_points < n && m.accuracy < 1e-6 && m.precision == 1.0, "{m:?}");
+    }
+
+    #[test]
+    fn pixels_across_a_depth_step_are_not_ground_truth() {
+        // 4×2 pixels, depth 2.0 2.1 5.0 –  /  2.0 2.1 5.0 5.1, the top-right pixel outside the mask.
+        // With tolerance 0.5: the pixels on either side of the step 2.1 → 5.0 are left out; the slope
+        // 2.0 → 2.1 is kept; the bottom-right pixel borders only the mask's outline and is kept.
+        let cam = Camera { c2w: Mat4::IDENTITY, fov_x: 1.0, width: 4, height: 2 };
+        let depth = Image { width: 4, height: 2, channels: 1, data: vec![2.0, 2.1, 5.0, 0.0, 2.0, 2.1, 5.0, 5.1] };
+        let mut alpha = Image::filled(4, 2, &[1.0]);
+        alpha.data[3] = 0.0;
+        let view = JudgeView::new("step".into(), cam, depth, alpha).unwrap();
+        let (kept, dropped) = view.surface_pixels(0.5);
+        assert_eq!((kept, dropped), (vec![0, 4, 7], 4));
     }
 
     #[test]
