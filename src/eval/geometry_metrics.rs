@@ -333,14 +333,17 @@ mod tests {
 
     /// The axis-aligned cube [−h, h]³ as 12 triangles.
     fn cube(h: f32) -> Mesh {
-        let mut m = Mesh::default();
-        m.positions = (0..8).map(|i| Vec3::new(if i & 1 == 0 { -h } else { h }, if i & 2 == 0 { -h } else { h }, if i & 4 == 0 { -h } else { h })).collect();
-        m.triangles = vec![
-            [0, 2, 1], [1, 2, 3], [4, 5, 6], [5, 7, 6], // z = −h, z = +h
-            [0, 1, 4], [1, 5, 4], [2, 6, 3], [3, 6, 7], // y = −h, y = +h
-            [0, 4, 2], [2, 4, 6], [1, 3, 5], [3, 7, 5], // x = −h, x = +h
-        ];
-        m.uvs = vec![Vec2::ZERO; 8];
+        let corner = |i: usize| Vec3::new(if i & 1 == 0 { -h } else { h }, if i & 2 == 0 { -h } else { h }, if i & 4 == 0 { -h } else { h });
+        let mut m = Mesh {
+            positions: (0..8).map(corner).collect(),
+            triangles: vec![
+                [0, 2, 1], [1, 2, 3], [4, 5, 6], [5, 7, 6], // z = −h, z = +h
+                [0, 1, 4], [1, 5, 4], [2, 6, 3], [3, 6, 7], // y = −h, y = +h
+                [0, 4, 2], [2, 4, 6], [1, 3, 5], [3, 7, 5], // x = −h, x = +h
+            ],
+            uvs: vec![Vec2::ZERO; 8],
+            ..Default::default()
+        };
         m.recompute_normals();
         m
     }

@@ -67,16 +67,11 @@ mod tests {
 
     /// The unit square [0, 1]² at z = 0 as two triangles, plus a degenerate one far away.
     fn square() -> Mesh {
-        let mut m = Mesh::default();
-        m.positions = vec![
-            Vec3::new(0.0, 0.0, 0.0),
-            Vec3::new(1.0, 0.0, 0.0),
-            Vec3::new(1.0, 1.0, 0.0),
-            Vec3::new(0.0, 1.0, 0.0),
-            Vec3::new(-5.0, 0.0, 0.0),
-        ];
-        m.triangles = vec![[0, 1, 2], [0, 2, 3], [4, 4, 0]];
-        m
+        Mesh {
+            positions: vec![Vec3::ZERO, Vec3::X, Vec3::new(1.0, 1.0, 0.0), Vec3::Y, Vec3::new(-5.0, 0.0, 0.0)],
+            triangles: vec![[0, 1, 2], [0, 2, 3], [4, 4, 0]],
+            ..Default::default()
+        }
     }
 
     #[test]

@@ -63,17 +63,12 @@ mod tests {
 
     /// Two triangles in the z = 0 plane with areas 1 and 3 (and a degenerate third).
     fn two_triangles() -> Mesh {
-        let mut m = Mesh::default();
-        m.positions = vec![
-            Vec3::new(0.0, 0.0, 0.0),
-            Vec3::new(2.0, 0.0, 0.0),
-            Vec3::new(0.0, 1.0, 0.0),
-            Vec3::new(10.0, 0.0, 0.0),
-            Vec3::new(13.0, 0.0, 0.0),
-            Vec3::new(10.0, 2.0, 0.0),
-        ];
-        m.triangles = vec![[0, 1, 2], [3, 4, 5], [0, 1, 1]];
-        m
+        let p = |x: f32, y: f32| Vec3::new(x, y, 0.0);
+        Mesh {
+            positions: vec![p(0.0, 0.0), p(2.0, 0.0), p(0.0, 1.0), p(10.0, 0.0), p(13.0, 0.0), p(10.0, 2.0)],
+            triangles: vec![[0, 1, 2], [3, 4, 5], [0, 1, 1]],
+            ..Default::default()
+        }
     }
 
     #[test]
