@@ -297,6 +297,18 @@ pub struct ViewMetrics {
     pub per_view: Vec<ViewScore>,
 }
 
+/// One view's scores from the reconstruction's G-buffer, the dataset's alpha (1 channel) and its
+/// decoded world-space normal map, if any.
+fn score_view(name: &str, g: &GBuffer, alpha: &Image, normal: Option<&Image>) -> ViewScore {
+    let covered = g.mask();
+    let inside = mask_from_alpha(alpha, MASK_THRESHOLD);
+    let normal_error_deg = normal.and_then(|gt| {
+        let both: Vec<bool> = covered.iter().zip(&inside).map(|(a, b)| *a && *b).collect();
+        Some(mean_angular_error_deg(&g.normal_image(), gt, Some(&both))).filter(|e| e.is_finite())
+    });
+    ViewScore { view: name.to_owned(), silhouette_iou: mask_iou(&covered, &inside), normal_error_deg }
+}
+
 /// Scores that need no ground-truth mesh, only the dataset's pictures: on each of `views` (the test
 /// views), the silhouette IoU and the normal angular error of `recon` (traced through `bvh`).
 pub fn view_metrics(recon: &Mesh, bvh: &Bvh, views: &[View]) -> Result<ViewMetrics> {
@@ -306,15 +318,8 @@ pub fn view_metrics(recon: &Mesh, bvh: &Bvh, views: &[View]) -> Result<ViewMetri
     let mut per_view = Vec::with_capacity(views.len());
     for view in views {
         let g = GBuffer::trace(recon, bvh, &view.camera);
-        let covered = g.mask();
-        let inside = mask_from_alpha(&view.load_alpha()?, MASK_THRESHOLD);
-        let normal_error_deg = if view.has_normal() {
-            let both: Vec<bool> = covered.iter().zip(&inside).map(|(a, b)| *a && *b).collect();
-            Some(mean_angular_error_deg(&g.normal_image(), &view.load_normal()?, Some(&both))).filter(|e| e.is_finite())
-        } else {
-            None
-        };
-        per_view.push(ViewScore { view: view.name.clone(), silhouette_iou: mask_iou(&covered, &inside), normal_error_deg });
+        let normal = view.has_normal().then(|| view.load_normal()).transpose()?;
+        per_view.push(score_view(&view.name, &g, &view.load_alpha()?, normal.as_ref()));
     }
     let ious: Vec<f64> = per_view.iter().map(|s| s.silhouette_iou).collect();
     let normals: Vec<f64> = per_view.iter().filter_map(|s| s.normal_error_deg).collect();
@@ -477,6 +482,42 @@ mod tests {
         let view = JudgeView::new("step".into(), cam, depth, alpha).unwrap();
         let (kept, dropped) = view.surface_pixels(0.5);
         assert_eq!((kept, dropped), (vec![0, 4, 7], 4));
+    }
+
+    #[test]
+    fn view_scores_of_a_known_square() {
+        // The square [−1, 1]² at z = 0 seen from (0, 0, 4) with a 90° field of view over 8×8 pixels:
+        // one pixel spans one unit at depth 4, so the square covers the 2×2 pixels around the
+        // centre (columns and rows 3-4), with normal +z.
+        let mut square = Mesh {
+            positions: vec![Vec3::new(-1.0, -1.0, 0.0), Vec3::new(1.0, -1.0, 0.0), Vec3::new(1.0, 1.0, 0.0), Vec3::new(-1.0, 1.0, 0.0)],
+            triangles: vec![[0, 1, 2], [0, 2, 3]],
+            uvs: vec![Vec2::ZERO; 4],
+            ..Default::default()
+        };
+        square.recompute_normals();
+        let cam = Camera { c2w: Mat4::from_translation(Vec3::new(0.0, 0.0, 4.0)), fov_x: 90f32.to_radians(), width: 8, height: 8 };
+        let g = GBuffer::trace(&square, &Bvh::build(&square), &cam);
+        // The dataset's mask covers columns 3-6 of rows 3-4: 4 pixels in both, 8 in either.
+        let mut alpha = Image::new(8, 8, 1);
+        let mut normal = Image::new(8, 8, 4);
+        for y in 3..5 {
+            for x in 3..7 {
+                alpha.data[y * 8 + x] = 1.0;
+                // Ground-truth normal +z in column 3, +x elsewhere: of the 4 shared pixels, 2 agree
+                // and 2 are 90° off, a mean of 45°.
+                let n = if x == 3 { [0.0, 0.0, 1.0, 1.0] } else { [1.0, 0.0, 0.0, 1.0] };
+                normal.data[4 * (y * 8 + x)..4 * (y * 8 + x) + 4].copy_from_slice(&n);
+            }
+        }
+        let s = score_view("square", &g, &alpha, Some(&normal));
+        assert_eq!(s.silhouette_iou, 0.5);
+        assert!((s.normal_error_deg.unwrap() - 45.0).abs() < 1e-3, "{s:?}");
+        let s = score_view("square", &g, &alpha, None);
+        assert_eq!(s.normal_error_deg, None);
+        // No pixel in common: IoU 0 and no normal score.
+        let s = score_view("square", &g, &Image::new(8, 8, 1), Some(&normal));
+        assert!(s.silhouette_iou == 0.0 && s.normal_error_deg.is_none(), "{s:?}");
     }
 
     #[test]
