@@ -1,5 +1,5 @@
 //! Image metrics of the NeRFactor evaluation protocol: MSE / PSNR, per-channel albedo scale,
-//! normal angular error, and compositing over white for relighting comparisons.
+//! normal angular error, mask IoU, and compositing over white for relighting comparisons.
 //!
 //! Conventions: metrics compare the *colour* channels (grey, or the first three); alpha is never
 //! compared — turn it into a mask with [`mask_from_alpha`]. Masks are one `bool` per pixel;
@@ -117,6 +117,18 @@ pub fn mean_angular_error_deg(a: &Image, b: &Image, mask: Option<&[bool]>) -> f6
     }
 }
 
+/// Intersection over union of two masks (1 when both are empty: they agree everywhere).
+pub fn mask_iou(a: &[bool], b: &[bool]) -> f64 {
+    assert_eq!(a.len(), b.len(), "mask_iou: masks of different lengths");
+    let inter = a.iter().zip(b).filter(|(x, y)| **x && **y).count();
+    let union = a.iter().zip(b).filter(|(x, y)| **x || **y).count();
+    if union == 0 {
+        1.0
+    } else {
+        inter as f64 / union as f64
+    }
+}
+
 /// Composite linear colour over a white background and encode to sRGB:
 /// srgb(clamp(rgb·α + (1 − α), 0, 1)). `alpha` is a 1-channel image or the last channel of a
 /// 2/4-channel one. Returns a 3-channel image (grey input is replicated).
@@ -196,6 +208,17 @@ mod tests {
         assert!((mean_angular_error_deg(&a, &b, None) - 67.5).abs() < 1e-4);
         assert!((mean_angular_error_deg(&a, &b, Some(&[true, false, true])) - 45.0).abs() < 1e-4);
         assert!((mean_angular_error_deg(&a, &a, None)).abs() < 1e-6);
+    }
+
+    #[test]
+    fn iou_of_known_masks() {
+        // 2 pixels in both, 4 in either → 1/2; disjoint → 0; identical → 1; both empty → 1.
+        let a = [true, true, true, false, false];
+        let b = [false, true, true, true, false];
+        assert_eq!(mask_iou(&a, &b), 0.5);
+        assert_eq!(mask_iou(&[true, false], &[false, true]), 0.0);
+        assert_eq!(mask_iou(&a, &a), 1.0);
+        assert_eq!(mask_iou(&[false; 3], &[false; 3]), 1.0);
     }
 
     #[test]

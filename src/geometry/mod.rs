@@ -1,8 +1,11 @@
 //! Meshes, their files (OBJ via tobj, glTF via gltf), ray queries through a BVH (obvhs), and the
 //! visual hull of a set of masks (a starting shape when the data has no mesh).
+//! Meshes, their files (OBJ via tobj, glTF via gltf), ray queries through a BVH (obvhs),
+//! closest-point queries (parry3d) and area-weighted surface samples.
 
 pub mod atlas;
 pub mod bvh;
+pub mod closest_point;
 pub mod gltf_io;
 pub mod hull;
 pub mod manifold;
@@ -11,6 +14,7 @@ pub mod icosphere;
 pub mod mesh;
 pub mod obj;
 pub mod primitives;
+pub mod surface_samples;
 pub mod texture_file;
 
 pub use mesh::{Mesh, Part};
