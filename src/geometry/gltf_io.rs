@@ -14,7 +14,7 @@ use serde_json::json;
 use super::mesh::{Mesh, Part};
 use crate::color::srgb_to_linear;
 use crate::image::Image;
-use crate::material::{BaseColor, PartMaterial};
+use crate::material::{BaseColor, PartMaterial, Scalar};
 
 /// A decoded glTF image as linear RGB (8/16-bit data is sRGB-encoded per the spec; float data is
 /// taken as linear).
@@ -75,7 +75,7 @@ fn material_from_gltf(m: &gltf::Material, images: &[gltf::image::Data], path: &P
         }
         None => BaseColor::Constant(factor),
     };
-    Ok(PartMaterial { name, base_color, roughness: pbr.roughness_factor(), metallic: pbr.metallic_factor() })
+    Ok(PartMaterial { name, base_color, roughness: Scalar::Constant(pbr.roughness_factor()), metallic: Scalar::Constant(pbr.metallic_factor()) })
 }
 
 struct Loader<'a> {
@@ -150,8 +150,8 @@ impl Loader<'_> {
                     None => PartMaterial {
                         name: "default".into(),
                         base_color: BaseColor::Constant(Vec3::ONE), // glTF's default material
-                        roughness: 1.0,
-                        metallic: 1.0,
+                        roughness: Scalar::Constant(1.0),
+                        metallic: Scalar::Constant(1.0),
                     },
                 };
                 self.mesh.materials.push(mat);
@@ -302,8 +302,8 @@ pub fn write_gltf(path: impl AsRef<Path>, mesh: &Mesh, base_color_textures: &[Op
         };
         let mut pbr = json!({
             "baseColorFactor": [factor.x, factor.y, factor.z, 1.0],
-            "metallicFactor": m.metallic,
-            "roughnessFactor": m.roughness,
+            "metallicFactor": m.metallic.mean(),
+            "roughnessFactor": m.roughness.mean(),
         });
         if let Some(Some(uri)) = base_color_textures.get(i) {
             images.push(json!({ "uri": uri }));

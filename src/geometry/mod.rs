@@ -3,6 +3,8 @@
 pub mod atlas;
 pub mod bvh;
 pub mod gltf_io;
+pub mod ground_truth;
+pub mod materials_json;
 pub mod mesh;
 pub mod obj;
 pub mod primitives;

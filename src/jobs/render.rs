@@ -12,7 +12,6 @@ use serde::Serialize;
 
 use crate::eval::metrics::{mask_from_alpha, over_white, psnr};
 use crate::geometry::bvh::Bvh;
-use crate::geometry::obj::load_ground_truth;
 use crate::geometry::Mesh;
 use crate::image::{io, Image};
 use crate::light::CubeMap;
@@ -21,10 +20,10 @@ use crate::render::gbuffer::GBuffer;
 use crate::render::view::{render_view, PreparedLight, RenderSettings, ShadingMode};
 use crate::scene::dataset::{Dataset, View};
 use crate::scene::probe::Probe;
-use crate::scene::{default_scene, SceneSpec};
+use crate::scene::SceneSpec;
+// Ground-truth loading lives in scene::ground_truth; re-exported for the jobs that used it from here.
+pub use crate::scene::ground_truth::{ground_truth_mesh, BUILTIN_DEFAULT_GT};
 
-/// Ground-truth folder value meaning "the generator's own mesh" (see scenes/default.toml).
-pub const BUILTIN_DEFAULT_GT: &str = "builtin:default";
 /// Resolution of the cube map a lat-long probe is converted to.
 pub const CUBE_RES: usize = 64;
 
@@ -74,18 +73,6 @@ impl RenderReport {
     pub fn mean_psnr(&self, mode: ShadingMode) -> Option<f64> {
         let scores: Vec<f64> = self.renders.iter().filter(|r| r.mode == mode).filter_map(|r| r.psnr_db).collect();
         (!scores.is_empty()).then(|| scores.iter().sum::<f64>() / scores.len() as f64)
-    }
-}
-
-/// The scene's ground-truth mesh with its materials.
-pub fn ground_truth_mesh(spec: &SceneSpec) -> Result<Mesh> {
-    match &spec.ground_truth {
-        Some(g) if g.as_os_str() == BUILTIN_DEFAULT_GT => Ok(default_scene::mesh()),
-        Some(_) => {
-            let dir = spec.gt_dir().expect("ground truth folder is set");
-            load_ground_truth(&dir).with_context(|| format!("loading the ground truth of scene {:?}", spec.name))
-        }
-        None => bail!("scene {:?} has no ground truth (no [ground_truth] folder in its spec)", spec.name),
     }
 }
 
