@@ -375,9 +375,10 @@ mod tests {
         let mut tex = Image::new(2, 2, 3);
         tex.data = vec![1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.5, 0.5, 0.5];
         save_srgb_texture(&dir.join("t.png"), &tex).expect("test setup");
+        image::GrayImage::from_raw(2, 1, vec![51, 204]).expect("test setup").save(dir.join("m.png")).expect("test setup");
         std::fs::write(
             dir.join("m.mtl"),
-            "newmtl A\nKd 0.2 0.4 0.6\nNs 250\nPm 0.25\nnewmtl B\nKd 1 1 1\nPr 0.7\nmap_Kd t.png\n",
+            "newmtl A\nKd 0.2 0.4 0.6\nNs 250\nPm 0.25\nnewmtl B\nKd 1 1 1\nPr 0.7\nmap_Kd t.png\nmap_Pm m.png\n",
         )
         .expect("test setup");
         // Part `a` has no vt and no vn; part `b` has both.
@@ -400,10 +401,13 @@ mod tests {
             }
         }
         let a = &mesh.materials[mesh.parts[0].material];
-        assert!((a.roughness - 0.5).abs() < 1e-6 && (a.metallic - 0.25).abs() < 1e-6);
+        assert!((a.roughness.constant().unwrap() - 0.5).abs() < 1e-6 && a.metallic.constant() == Some(0.25));
         assert!(matches!(a.base_color, BaseColor::Constant(c) if (c - Vec3::new(0.2, 0.4, 0.6)).length() < 1e-6));
         let b = &mesh.materials[mesh.parts[1].material];
-        assert!((b.roughness - 0.7).abs() < 1e-6);
+        assert!((b.roughness.constant().unwrap() - 0.7).abs() < 1e-6);
+        // map_Pm: a linear grey texture, codes 51 and 204 → 0.2 and 0.8 exactly as stored.
+        let Scalar::Texture(m) = &b.metallic else { panic!("map_Pm not read: {:?}", b.metallic) };
+        assert!((m.data[0] - 0.2).abs() < 1e-6 && (m.data[1] - 0.8).abs() < 1e-6, "{:?}", m.data);
         // Texel (1,1) (bottom right) is sRGB 188/255 → linear ≈ 0.5; vt v = 0 is the bottom row.
         let p = b.eval(Vec2::new(0.75, 0.25));
         assert!((p.kd - Vec3::splat(0.5)).abs().max_element() < 0.01, "{:?}", p.kd);

@@ -355,6 +355,9 @@ impl ReconstructReport {
             e.metallic_mse.map_or("-".into(), |v| format!("{v:.4}")),
             f(e.normal_error_deg),
         );
+        for line in &e.not_computed {
+            s.push_str(&format!("\nnot computed: {line}"));
+        }
         for (stage, secs) in &self.stage_seconds {
             s.push_str(&format!("\n{stage}: {secs:.1} s"));
         }

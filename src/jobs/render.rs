@@ -35,7 +35,7 @@ pub struct RenderOptions {
     /// View names (e.g. `test_049`); empty means every test view.
     pub views: Vec<String>,
     /// `train` (the training probe), a test-probe name, or a .hdr/.exr path; empty means the
-    /// training probe and every test probe.
+    /// training probe (when the scene names one) and every test probe.
     pub probes: Vec<String>,
     pub modes: Vec<ShadingMode>,
     pub spp: u32,
@@ -139,7 +139,8 @@ pub fn run(opts: &RenderOptions) -> Result<RenderReport> {
 
     let views: Vec<&View> = if opts.views.is_empty() { dataset.test.iter().collect() } else { opts.views.iter().map(|n| dataset.view(n)).collect::<Result<_>>()? };
     let probe_keys: Vec<String> = if opts.probes.is_empty() {
-        std::iter::once("train".to_string()).chain(spec.test_probes.names.iter().cloned()).collect()
+        // The training probe is optional (a reconstruction learns the light).
+        spec.train_probe.iter().map(|_| "train".to_string()).chain(spec.test_probes.names.iter().cloned()).collect()
     } else {
         opts.probes.clone()
     };

@@ -143,8 +143,8 @@ mod tests {
         let m = PartMaterial {
             name: "m".into(),
             base_color: BaseColor::Constant(Vec3::new(0.1, 0.2, 0.3)),
-            roughness: Scalar::Constant(Scalar::Texture(Arc::new(rough))),
-            metallic: Scalar::Constant(Scalar::Texture(Arc::new(metal))),
+            roughness: Scalar::Texture(Arc::new(rough)),
+            metallic: Scalar::Texture(Arc::new(metal)),
         };
         // Texel centres at u = 0.25 and 0.75; halfway between them the lookup is the mean.
         let p = m.eval(Vec2::new(0.25, 0.5));

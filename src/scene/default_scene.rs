@@ -20,7 +20,7 @@ use crate::scene::synthetic::{write_nerfactor, SyntheticScene};
 use crate::scene::{Camera, Probe};
 
 /// Bump when the scene or its rendering changes, so stale caches are rebuilt.
-pub const VERSION: u32 = 2;
+pub const VERSION: u32 = 3;
 pub const RESOLUTION: usize = 128;
 /// Indirect bounces of the dataset's renders (beyond what a reconstruction simulates by default).
 pub const DATA_BOUNCES: u32 = 5;
