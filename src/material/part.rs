@@ -23,12 +23,6 @@ pub enum Scalar {
     Texture(Arc<Image>),
 }
 
-impl From<f32> for Scalar {
-    fn from(v: f32) -> Self {
-        Scalar::Constant(v)
-    }
-}
-
 impl Scalar {
     /// The smallest and largest value the material can take (over every texel of a texture).
     pub fn range(&self) -> (f32, f32) {
@@ -101,7 +95,8 @@ fn lookup(img: &Image, uv: Vec2, out: &mut [f32]) {
 impl PartMaterial {
     /// A material of constants.
     pub fn constant(name: &str, base_color: Vec3, roughness: f32, metallic: f32) -> PartMaterial {
-        PartMaterial { name: name.into(), base_color: BaseColor::Constant(base_color), roughness: Scalar::Constant(roughness.into()), metallic: Scalar::Constant(metallic.into()) }
+        let (base_color, roughness, metallic) = (BaseColor::Constant(base_color), Scalar::Constant(roughness), Scalar::Constant(metallic));
+        PartMaterial { name: name.into(), base_color, roughness, metallic }
     }
 
     /// The BRDF inputs at surface UV `uv` (the one place part materials are evaluated).
