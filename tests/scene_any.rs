@@ -39,6 +39,14 @@ fn tmp_dir(tag: &str) -> PathBuf {
     d
 }
 
+/// A fresh temporary folder and its `data/gt` folder.
+fn root_with_gt_folder(tag: &str) -> (PathBuf, PathBuf) {
+    let root = tmp_dir(tag);
+    let gt = root.join("data/gt");
+    std::fs::create_dir_all(&gt).expect("test setup");
+    (root, gt)
+}
+
 /// 4×4 texture codes: distinct 8-bit values so that a texel read back names its place.
 fn codes(offset: u8) -> Vec<u8> {
     (0..16u8).map(|i| offset + 11 * i).collect()
@@ -96,6 +104,19 @@ fn write_scene(root: &Path, mesh: Mesh, gt_folder: Option<&str>) -> PathBuf {
     path
 }
 
+/// The material of the mesh part named `part`.
+fn material_of<'a>(mesh: &'a Mesh, part: &str) -> &'a PartMaterial {
+    &mesh.materials[mesh.parts.iter().find(|p| p.name == part).unwrap_or_else(|| panic!("part {part} missing")).material]
+}
+
+/// Render views of `mesh` into `root/data` beside its gt/ folder, check that the render job
+/// reproduces them from the ground truth it loads, and remove `root`.
+fn render_with_views_then_remove(root: &Path, mesh: Mesh) {
+    let spec_path = write_scene(root, mesh, Some("gt"));
+    render_and_compare(&spec_path, &root.join("render"));
+    std::fs::remove_dir_all(root).ok();
+}
+
 /// The render job reproduces the stored images from the ground truth it loads.
 fn render_and_compare(spec_path: &Path, out: &Path) {
     let opts = RenderOptions {
@@ -121,9 +142,7 @@ fn render_and_compare(spec_path: &Path, out: &Path) {
 
 #[test]
 fn differently_named_obj_with_textured_roughness_and_metallic_loads_renders_and_keeps_its_materials() {
-    let root = tmp_dir("cow");
-    let gt = root.join("data/gt");
-    std::fs::create_dir_all(&gt).expect("test setup");
+    let (root, gt) = root_with_gt_folder("cow");
     write_obj(gt.join("cow.obj"), &object(), &[]).expect("test setup");
     let (rough, metal) = (codes(20), codes(60));
     image::GrayImage::from_raw(4, 4, rough.clone()).expect("test setup").save(gt.join("hide_rough.png")).expect("test setup");
@@ -147,7 +166,7 @@ fn differently_named_obj_with_textured_roughness_and_metallic_loads_renders_and_
     let spec = SceneSpec::parse("data = \"data\"\n[ground_truth]\nfolder = \"gt\"\n", &root, "cow").expect("spec");
     assert_eq!(ground_truth_mesh_path(&spec).expect("found"), Some(gt.join("cow.obj")));
     let mesh = ground_truth_mesh(&spec).expect("ground truth loads");
-    let hide = &mesh.materials[mesh.parts.iter().find(|p| p.name == "Body").expect("Body").material];
+    let hide = material_of(&mesh, "Body");
     let (Scalar::Texture(r), Scalar::Texture(m), BaseColor::Texture(c)) = (&hide.roughness, &hide.metallic, &hide.base_color) else {
         panic!("Hide should be textured: {hide:?}")
     };
@@ -165,20 +184,16 @@ fn differently_named_obj_with_textured_roughness_and_metallic_loads_renders_and_
     // Evaluated at a texel centre (4×4: u = 0.375 is column 1; v = 0.875 is row 0, the top row).
     let p = hide.eval(Vec2::new(0.375, 0.875));
     assert!((p.roughness - rough[1] as f32 / 255.0).abs() < 1e-6 && (p.metallic - metal[1] as f32 / 255.0).abs() < 1e-6, "{p:?}");
-    let wood = &mesh.materials[mesh.parts.iter().find(|p| p.name == "Stand").expect("Stand").material];
+    let wood = material_of(&mesh, "Stand");
     assert_eq!((wood.roughness.constant(), wood.metallic.constant()), (Some(0.35), Some(0.0)));
     assert!(matches!(wood.base_color, BaseColor::Constant(c) if c == Vec3::new(0.45, 0.3, 0.15)));
 
-    let spec_path = write_scene(&root, mesh, Some("gt"));
-    render_and_compare(&spec_path, &root.join("render"));
-    std::fs::remove_dir_all(&root).ok();
+    render_with_views_then_remove(&root, mesh);
 }
 
 #[test]
 fn gltf_named_by_materials_json_beside_another_mesh_with_packed_roughness_metallic() {
-    let root = tmp_dir("statue");
-    let gt = root.join("data/gt");
-    std::fs::create_dir_all(&gt).expect("test setup");
+    let (root, gt) = root_with_gt_folder("statue");
     write_gltf(gt.join("statue.gltf"), &object(), &[]).expect("test setup");
     // A second mesh in the folder: materials.json must say which one is the object.
     std::fs::write(gt.join("proxy.obj"), "o p\nv 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n").expect("test setup");
@@ -196,17 +211,15 @@ fn gltf_named_by_materials_json_beside_another_mesh_with_packed_roughness_metall
     assert_eq!(ground_truth_source(&spec).expect("found"), Some(GroundTruthSource::File(gt.join("statue.gltf"))));
     let mesh = ground_truth_mesh(&spec).expect("ground truth loads");
     // No `parts` list: each part takes the material named like it.
-    let body = &mesh.materials[mesh.parts.iter().find(|p| p.name == "Body").expect("Body").material];
+    let body = material_of(&mesh, "Body");
     let (Scalar::Texture(r), Scalar::Texture(m)) = (&body.roughness, &body.metallic) else { panic!("Body should be textured") };
     for (k, px) in packed.chunks_exact(3).enumerate() {
         assert!((r.data[k] - px[1] as f32 / 255.0).abs() < 1e-6 && (m.data[k] - px[2] as f32 / 255.0).abs() < 1e-6, "texel {k}");
     }
-    let stand = &mesh.materials[mesh.parts.iter().find(|p| p.name == "Stand").expect("Stand").material];
+    let stand = material_of(&mesh, "Stand");
     assert_eq!((stand.roughness.constant(), stand.metallic.constant()), (Some(0.9), Some(1.0)));
 
-    let spec_path = write_scene(&root, mesh, Some("gt"));
-    render_and_compare(&spec_path, &root.join("render"));
-    std::fs::remove_dir_all(&root).ok();
+    render_with_views_then_remove(&root, mesh);
 }
 
 #[test]
