@@ -80,10 +80,6 @@ pub struct SimulatedIdarb {
     object_size: OnceLock<f32>,
 }
 
-/// Every k-th pixel (in x and y) of a depth map counts towards the object's size: the bounding box
-/// of a dense object barely changes, and this reads a tenth of the points.
-const SIZE_PIXEL_STRIDE: usize = 3;
-
 /// Surface points of a view: its depth map back-projected through its camera (None where the depth
 /// is 0, i.e. background), or `None` when the view has no depth map.
 pub fn depth_points(view: &View) -> Result<Option<Vec<Option<Vec3>>>> {
@@ -117,7 +113,8 @@ impl SimulatedIdarb {
     }
 
     /// The bounding-box diagonal of the depth points of every training view (1 when no view has a
-    /// depth map: the image plane's units).
+    /// depth map: the image plane's units). Only fully covered pixels count: a partly covered
+    /// pixel's depth may blend the object with the background and land in front of the object.
     fn object_size(&self, dataset: &Dataset) -> Result<f32> {
         if let Some(s) = self.object_size.get() {
             return Ok(*s);
@@ -125,9 +122,9 @@ impl SimulatedIdarb {
         let (mut lo, mut hi) = (Vec3::splat(f32::MAX), Vec3::splat(f32::MIN));
         for view in &dataset.train {
             let Some(points) = depth_points(view)? else { continue };
-            let w = view.camera.width;
-            for (i, p) in points.iter().enumerate() {
-                if let Some(p) = p.filter(|_| (i % w) % SIZE_PIXEL_STRIDE == 0 && (i / w) % SIZE_PIXEL_STRIDE == 0) {
+            let alpha = view.load_alpha()?;
+            for (p, a) in points.iter().zip(&alpha.data) {
+                if let Some(p) = p.filter(|_| *a >= 1.0) {
                     (lo, hi) = (lo.min(p), hi.max(p));
                 }
             }
