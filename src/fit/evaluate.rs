@@ -80,19 +80,17 @@ fn missing_metrics(dataset: &Dataset, test_probes: &[Probe], max_test_views: Opt
     let val = &dataset.val;
     if val.is_empty() {
         out.push("validation PSNR, albedo, roughness, metallic and normal metrics: the dataset has no validation views".to_string());
+    } else if !val.iter().any(View::has_albedo) {
+        out.push("albedo PSNR (raw and scaled), roughness and metallic MSE, normal error, scaled relighting: no validation view has albedo.png".to_string());
     } else {
-        let none_has = |f: &dyn Fn(&View) -> bool| !val.iter().any(f);
-        if none_has(&|v| v.has_albedo()) {
-            out.push("albedo PSNR (raw and scaled), roughness and metallic MSE, normal error, scaled relighting: no validation view has albedo.png".to_string());
-        } else {
-            for (metric, file, has) in [
-                ("roughness MSE", "roughness.png", &(|v: &View| v.has_roughness()) as &dyn Fn(&View) -> bool),
-                ("metallic MSE", "metallic.png", &|v: &View| v.has_metallic()),
-                ("normal error", "normal.png", &|v: &View| v.has_normal()),
-            ] {
-                if none_has(has) {
-                    out.push(format!("{metric}: no validation view has {file}"));
-                }
+        let maps: [(&str, &str, fn(&View) -> bool); 3] = [
+            ("roughness MSE", "roughness.png", View::has_roughness),
+            ("metallic MSE", "metallic.png", View::has_metallic),
+            ("normal error", "normal.png", View::has_normal),
+        ];
+        for (metric, file, has) in maps {
+            if !val.iter().any(has) {
+                out.push(format!("{metric}: no validation view has {file}"));
             }
         }
     }
