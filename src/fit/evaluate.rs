@@ -83,8 +83,8 @@ fn missing_metrics(dataset: &Dataset, test_probes: &[Probe], max_test_views: Opt
     } else if !val.iter().any(View::has_albedo) {
         out.push("albedo PSNR (raw and scaled), roughness and metallic MSE, normal error, scaled relighting: no validation view has albedo.png".to_string());
     } else {
-        let maps: [(&str, &str, fn(&View) -> bool); 3] = [
-            ("roughness MSE", "roughness.png", View::has_roughness),
+        let maps = [
+            ("roughness MSE", "roughness.png", View::has_roughness as fn(&View) -> bool),
             ("metallic MSE", "metallic.png", View::has_metallic),
             ("normal error", "normal.png", View::has_normal),
         ];
