@@ -20,7 +20,7 @@ use rand::{Rng, SeedableRng};
 use rand_pcg::Pcg64;
 use rayon::prelude::*;
 use reconstruct::geometry::bvh::Bvh;
-use reconstruct::geometry::obj::load_ground_truth;
+use reconstruct::geometry::ground_truth::load_ground_truth;
 use reconstruct::geometry::Mesh;
 use reconstruct::render::gbuffer::GBuffer;
 use reconstruct::scene::camera::Camera;

@@ -7,7 +7,7 @@
 use std::time::Instant;
 
 use reconstruct::geometry::bvh::Bvh;
-use reconstruct::geometry::obj::load_ground_truth;
+use reconstruct::geometry::ground_truth::load_ground_truth;
 use reconstruct::light::CubeMap;
 use reconstruct::render::effects::Effects;
 use reconstruct::render::gbuffer::GBuffer;

@@ -7,7 +7,7 @@ use std::time::Instant;
 
 use glam::Vec3;
 use reconstruct::geometry::atlas::{build, own_uvs_problem, AtlasSource};
-use reconstruct::geometry::obj::load_ground_truth;
+use reconstruct::geometry::ground_truth::load_ground_truth;
 use reconstruct::geometry::Mesh;
 use reconstruct::material::texture_maps::MaterialTextures;
 use reconstruct::material::BaseColor;

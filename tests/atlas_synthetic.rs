@@ -8,11 +8,11 @@ use reconstruct::geometry::primitives::MeshBuilder;
 use reconstruct::geometry::Mesh;
 use reconstruct::image::Image;
 use reconstruct::material::texture_maps::MaterialTextures;
-use reconstruct::material::{BaseColor, PartMaterial};
+use reconstruct::material::{BaseColor, PartMaterial, Scalar};
 use std::sync::Arc;
 
 fn constant(name: &str, kd: Vec3, roughness: f32, metallic: f32) -> PartMaterial {
-    PartMaterial { name: name.into(), base_color: BaseColor::Constant(kd), roughness, metallic }
+    PartMaterial::constant(name, kd, roughness, metallic)
 }
 
 /// A smooth colour ramp texture so that a baked texture shows whether the UV mapping is right.
@@ -30,7 +30,7 @@ fn ramp_texture(res: usize) -> Arc<Image> {
 /// Two ellipsoids on the same UV square, a cylinder (caps share UVs), and a part without UVs.
 fn multi_part_mesh() -> Mesh {
     let mut b = MeshBuilder::new();
-    let textured = PartMaterial { name: "ramp".into(), base_color: BaseColor::Texture(ramp_texture(64)), roughness: 0.4, metallic: 0.0 };
+    let textured = PartMaterial { name: "ramp".into(), base_color: BaseColor::Texture(ramp_texture(64)), roughness: Scalar::Constant(0.4), metallic: Scalar::Constant(0.0) };
     let e1 = b.part(textured.clone());
     let e2 = b.part(PartMaterial { name: "ramp2".into(), ..textured });
     let cyl = b.part(constant("cyl", Vec3::new(0.8, 0.2, 0.1), 0.3, 1.0));

@@ -12,7 +12,7 @@ use reconstruct::geometry::primitives::MeshBuilder;
 use reconstruct::geometry::Mesh;
 use reconstruct::light::sampler::LightSampler;
 use reconstruct::light::CubeMap;
-use reconstruct::material::{BaseColor, PartMaterial, SurfaceParams};
+use reconstruct::material::{BaseColor, PartMaterial, Scalar, SurfaceParams};
 use reconstruct::optim::gradcheck::{check_gradient_with, GradCheckOptions};
 use reconstruct::render::effects::Effects;
 use reconstruct::render::gbuffer::GBuffer;
@@ -24,7 +24,7 @@ use reconstruct::scene::Camera;
 /// A ball resting over a disc: shadows, grazing silhouettes.
 fn scene() -> (Mesh, Bvh, GBuffer) {
     let mut b = MeshBuilder::new();
-    let part = b.part(PartMaterial { name: "m".into(), base_color: BaseColor::Constant(Vec3::splat(0.5)), roughness: 0.5, metallic: 0.0 });
+    let part = b.part(PartMaterial { name: "m".into(), base_color: BaseColor::Constant(Vec3::splat(0.5)), roughness: Scalar::Constant(0.5), metallic: Scalar::Constant(0.0) });
     b.ellipsoid(part, Vec3::new(0.0, 0.0, 0.45), Vec3::splat(0.4), Quat::IDENTITY, 16, 8);
     b.cylinder(part, Vec2::ZERO, 1.0, -0.05, 0.0, 24);
     let mesh = b.build();

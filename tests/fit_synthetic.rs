@@ -26,7 +26,7 @@ use reconstruct::light::brdf_lut::BrdfLut;
 use reconstruct::light::prefilter::PrefilterOptions;
 use reconstruct::light::CubeMap;
 use reconstruct::material::texture_maps::MaterialTextures;
-use reconstruct::material::{BaseColor, PartMaterial};
+use reconstruct::material::{BaseColor, PartMaterial, Scalar};
 use reconstruct::optim::texture::bilinear_taps;
 use reconstruct::render::effects::Effects;
 use reconstruct::render::splitsum_op::LightMaps;
@@ -73,7 +73,7 @@ fn sky(sun: f32) -> CubeMap {
 /// A convex textured ellipsoid: split-sum targets (no visibility needed).
 fn scene(sun: f32) -> Result<Scene> {
     let mut b = MeshBuilder::new();
-    let part = b.part(PartMaterial { name: "body".into(), base_color: BaseColor::Texture(Arc::new(pattern(64))), roughness: 0.5, metallic: 0.0 });
+    let part = b.part(PartMaterial { name: "body".into(), base_color: BaseColor::Texture(Arc::new(pattern(64))), roughness: Scalar::Constant(0.5), metallic: Scalar::Constant(0.0) });
     b.ellipsoid(part, Vec3::ZERO, Vec3::new(0.8, 0.6, 0.5), Quat::IDENTITY, 32, 16);
     let split_sum = RenderSettings { mode: ShadingMode::SplitSum, spp: 1, supersample: 1, seed: 0, effects: Effects { shadows: false, specular: true, indirect_bounces: 0 } };
     scene_of(b.build(), sky(sun), split_sum, TEX)
@@ -82,9 +82,9 @@ fn scene(sun: f32) -> Result<Scene> {
 /// A textured ball sunk into a light disc between two walls: light bounces between them.
 fn concave_scene() -> Result<Scene> {
     let mut b = MeshBuilder::new();
-    let ball = b.part(PartMaterial { name: "ball".into(), base_color: BaseColor::Texture(Arc::new(pattern(64))), roughness: 0.7, metallic: 0.0 });
+    let ball = b.part(PartMaterial { name: "ball".into(), base_color: BaseColor::Texture(Arc::new(pattern(64))), roughness: Scalar::Constant(0.7), metallic: Scalar::Constant(0.0) });
     b.ellipsoid(ball, Vec3::new(0.0, 0.0, 0.3), Vec3::splat(0.4), Quat::IDENTITY, 24, 12);
-    let walls = b.part(PartMaterial { name: "walls".into(), base_color: BaseColor::Constant(Vec3::new(0.85, 0.8, 0.7)), roughness: 0.9, metallic: 0.0 });
+    let walls = b.part(PartMaterial { name: "walls".into(), base_color: BaseColor::Constant(Vec3::new(0.85, 0.8, 0.7)), roughness: Scalar::Constant(0.9), metallic: Scalar::Constant(0.0) });
     b.cylinder(walls, glam::Vec2::ZERO, 0.9, -0.1, 0.0, 32);
     for y in [-0.55, 0.55] {
         b.ellipsoid(walls, Vec3::new(0.0, y, 0.3), Vec3::new(0.8, 0.08, 0.4), Quat::IDENTITY, 24, 12);

@@ -6,7 +6,7 @@ use std::path::{Path, PathBuf};
 
 use glam::{Mat4, Vec3};
 use reconstruct::geometry::bvh::Bvh;
-use reconstruct::geometry::obj::load_ground_truth;
+use reconstruct::geometry::ground_truth::load_ground_truth;
 use reconstruct::render::gbuffer::GBuffer;
 use reconstruct::scene::camera::Camera;
 

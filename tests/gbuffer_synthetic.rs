@@ -4,7 +4,7 @@
 use glam::{Mat4, Vec2, Vec3};
 use reconstruct::geometry::bvh::Bvh;
 use reconstruct::geometry::{Mesh, Part};
-use reconstruct::material::{BaseColor, PartMaterial};
+use reconstruct::material::{BaseColor, PartMaterial, Scalar};
 use reconstruct::render::gbuffer::GBuffer;
 use reconstruct::scene::camera::Camera;
 
@@ -33,8 +33,8 @@ fn quad_with_degenerates(face_up: bool) -> Mesh {
     mesh.materials.push(PartMaterial {
         name: "m".into(),
         base_color: BaseColor::Constant(Vec3::new(0.2, 0.4, 0.6)),
-        roughness: 0.3,
-        metallic: 0.1,
+        roughness: Scalar::Constant(0.3),
+        metallic: Scalar::Constant(0.1),
     });
     mesh
 }

@@ -10,7 +10,7 @@ use reconstruct::geometry::obj::{load_obj, write_obj, MaterialTextureNames};
 use reconstruct::geometry::texture_file::save_srgb_texture;
 use reconstruct::geometry::{Mesh, Part};
 use reconstruct::image::Image;
-use reconstruct::material::{BaseColor, PartMaterial};
+use reconstruct::material::{BaseColor, PartMaterial, Scalar};
 
 fn tmp_dir(tag: &str) -> PathBuf {
     let d = std::env::temp_dir().join(format!("reconstruct-rt-{tag}-{}", std::process::id()));
@@ -68,8 +68,8 @@ fn test_mesh() -> Mesh {
         Part { name: "grid2".into(), material: 0, has_uv: true },
     ];
     mesh.materials = vec![
-        PartMaterial { name: "textured".into(), base_color: BaseColor::Texture(Arc::new(texture())), roughness: 0.35, metallic: 0.0 },
-        PartMaterial { name: "plain".into(), base_color: BaseColor::Constant(Vec3::new(0.7, 0.2, 0.05)), roughness: 0.8, metallic: 0.6 },
+        PartMaterial { name: "textured".into(), base_color: BaseColor::Texture(Arc::new(texture())), roughness: Scalar::Constant(0.35), metallic: Scalar::Constant(0.0) },
+        PartMaterial { name: "plain".into(), base_color: BaseColor::Constant(Vec3::new(0.7, 0.2, 0.05)), roughness: Scalar::Constant(0.8), metallic: Scalar::Constant(0.6) },
     ];
     mesh.validate().unwrap();
     mesh
@@ -85,7 +85,7 @@ fn assert_same_mesh(a: &Mesh, b: &Mesh, tex_tol: f32) {
         assert_eq!((&pa.name, pa.has_uv), (&pb.name, pb.has_uv));
         let (ma, mb) = (&a.materials[pa.material], &b.materials[pb.material]);
         assert_eq!(ma.name, mb.name);
-        assert!((ma.roughness - mb.roughness).abs() < 1e-5 && (ma.metallic - mb.metallic).abs() < 1e-5, "{}", ma.name);
+        assert!((ma.roughness.mean() - mb.roughness.mean()).abs() < 1e-5 && (ma.metallic.mean() - mb.metallic.mean()).abs() < 1e-5, "{}", ma.name);
         match (&ma.base_color, &mb.base_color) {
             (BaseColor::Constant(x), BaseColor::Constant(y)) => assert!((*x - *y).abs().max_element() < 1e-5),
             (BaseColor::Texture(x), BaseColor::Texture(y)) => {

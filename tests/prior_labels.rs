@@ -20,7 +20,7 @@ fn dataset() -> Result<Dataset> {
 }
 
 fn ctx() -> PriorContext {
-    PriorContext { idarb_weights: None, cache_dir: std::env::temp_dir(), idarb: Default::default(), seed: 1, geometry: None }
+    PriorContext { idarb_weights: None, cache_dir: std::env::temp_dir(), idarb: Default::default(), seed: 1 }
 }
 
 fn temp(name: &str) -> std::path::PathBuf {

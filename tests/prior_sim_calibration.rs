@@ -4,12 +4,8 @@
 //! 0.033). LEVEL 0 reproduces the oracle, and errors grow with the level (checked on the embedded
 //! default scene too, so CI exercises the simulator without the shared data).
 
-use std::sync::Arc;
-
 use anyhow::Result;
 use reconstruct::eval::label_metrics::{masked_mse, normal_cosine_similarity, scale_invariant_albedo_psnr};
-use reconstruct::geometry::bvh::Bvh;
-use reconstruct::jobs::render::ground_truth_mesh;
 use reconstruct::prior::idarb::labels::ViewLabels;
 use reconstruct::prior::oracle::view_labels;
 use reconstruct::prior::source::{make_prior, PriorContext, PriorSource};
@@ -32,9 +28,7 @@ fn measure(scene: &str, level: f64, views: &[usize]) -> Result<Option<Measured>>
         return Ok(None);
     }
     let dataset = spec.load_dataset()?;
-    let mesh = ground_truth_mesh(&spec)?;
-    let bvh = Bvh::build(&mesh);
-    let ctx = PriorContext { idarb_weights: None, cache_dir: std::env::temp_dir(), idarb: Default::default(), seed: 7, geometry: Some((Arc::new(mesh), Arc::new(bvh))) };
+    let ctx = PriorContext { idarb_weights: None, cache_dir: std::env::temp_dir(), idarb: Default::default(), seed: 7 };
     let sim = make_prior(&PriorSource::IdarbSim(level), &ctx)?;
     let labels: Vec<ViewLabels> = sim.labels(&dataset, views)?.into_iter().map(|l| l.expect("every view labelled")).collect();
     let truth: Vec<ViewLabels> = views.iter().map(|&i| view_labels(&dataset.train[i])).collect::<Result<_>>()?;

@@ -6,7 +6,7 @@
 use glam::Vec3;
 use reconstruct::jobs::render::protocol_psnr;
 use reconstruct::geometry::bvh::Bvh;
-use reconstruct::geometry::obj::load_ground_truth;
+use reconstruct::geometry::ground_truth::load_ground_truth;
 use reconstruct::image::Image;
 use reconstruct::light::CubeMap;
 use reconstruct::render::effects::Effects;

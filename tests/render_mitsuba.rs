@@ -26,7 +26,7 @@ use reconstruct::geometry::texture_file::load_srgb_texture;
 use reconstruct::geometry::Mesh;
 use reconstruct::image::{io, Image};
 use reconstruct::light::CubeMap;
-use reconstruct::material::{BaseColor, PartMaterial};
+use reconstruct::material::{BaseColor, PartMaterial, Scalar};
 use reconstruct::render::effects::Effects;
 use reconstruct::render::gbuffer::GBuffer;
 use reconstruct::render::view::{render_view, PreparedLight, RenderSettings, ShadingMode};
@@ -79,8 +79,8 @@ fn load_scene(folder: &str) -> Fixture {
         let material = PartMaterial {
             name: obj["name"].as_str().expect("name").into(),
             base_color,
-            roughness: m["roughness"].as_f64().expect("roughness") as f32,
-            metallic: m["metallic"].as_f64().expect("metallic") as f32,
+            roughness: Scalar::Constant(m["roughness"].as_f64().expect("roughness") as f32),
+            metallic: Scalar::Constant(m["metallic"].as_f64().expect("metallic") as f32),
         };
         part.materials = vec![material];
         for p in &mut part.parts {

@@ -10,7 +10,7 @@ use reconstruct::image::Image;
 use reconstruct::light::sampler::LightSampler;
 use reconstruct::light::CubeMap;
 use reconstruct::material::brdf;
-use reconstruct::material::{BaseColor, PartMaterial, SurfaceParams};
+use reconstruct::material::{BaseColor, PartMaterial, Scalar, SurfaceParams};
 use reconstruct::math::Frame;
 use reconstruct::render::effects::Effects;
 use reconstruct::render::gbuffer::Surfel;
@@ -113,7 +113,7 @@ fn white_furnace_both_modes() {
 /// a disc with a rim), under constant light 1: outgoing radiance, Monte Carlo with `bounces`.
 fn furnace_radiance(bounces: u32, spp: u32) -> Vec<f32> {
     let mut b = MeshBuilder::new();
-    let white = b.part(PartMaterial { name: "white".into(), base_color: BaseColor::Constant(Vec3::ONE), roughness: 1.0, metallic: 0.0 });
+    let white = b.part(PartMaterial { name: "white".into(), base_color: BaseColor::Constant(Vec3::ONE), roughness: Scalar::Constant(1.0), metallic: Scalar::Constant(0.0) });
     b.ellipsoid(white, Vec3::new(0.0, 0.0, 0.4), Vec3::splat(0.4), Quat::IDENTITY, 32, 16);
     b.cylinder(white, Vec2::ZERO, 1.0, -0.1, 0.0, 48);
     for k in 0..6 {

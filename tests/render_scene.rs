@@ -8,14 +8,14 @@ use reconstruct::geometry::primitives::MeshBuilder;
 use reconstruct::geometry::Mesh;
 use reconstruct::image::Image;
 use reconstruct::light::CubeMap;
-use reconstruct::material::{BaseColor, PartMaterial};
+use reconstruct::material::{BaseColor, PartMaterial, Scalar};
 use reconstruct::render::effects::{choose, interreflection_share, visible_self_occlusion, EffectSwitches, Effects, Switch, DEFAULT_INDIRECT_BOUNCES};
 use reconstruct::render::gbuffer::GBuffer;
 use reconstruct::render::view::{render_view, PreparedLight, RenderSettings, ShadingMode};
 use reconstruct::scene::Camera;
 
 fn material(name: &str, roughness: f32, metallic: f32) -> PartMaterial {
-    PartMaterial { name: name.into(), base_color: BaseColor::Constant(Vec3::new(0.6, 0.5, 0.4)), roughness, metallic }
+    PartMaterial::constant(name, Vec3::new(0.6, 0.5, 0.4), roughness, metallic)
 }
 
 /// A sphere resting on a slab: the slab is shadowed by the sphere.
@@ -128,8 +128,8 @@ fn degenerate_geometry_and_extreme_materials_render_finite() {
     mesh.uvs.extend([Vec2::ZERO; 4]);
     mesh.triangles.extend([[base, base + 1, base + 2], [base, base + 2, base + 3]]);
     mesh.triangle_part.extend([0, 0]);
-    mesh.materials[0].roughness = 1.7; // above 1: clamped
-    mesh.materials[1].metallic = 1.0;
+    mesh.materials[0].roughness = Scalar::Constant(1.7); // above 1: clamped
+    mesh.materials[1].metallic = Scalar::Constant(1.0);
     mesh.materials[1].base_color = BaseColor::Texture(Arc::new(Image::filled(4, 4, &[0.0, 0.0, 0.0])));
     let bvh = Bvh::build(&mesh);
     let mut probe = Image::filled(32, 16, &[0.1, 0.1, 0.1]);

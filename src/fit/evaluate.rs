@@ -7,7 +7,8 @@
 //! - roughness and metallic MSE and the shading normal's mean angular error on the validation views;
 //! - re-rendered training views under the learned light, in the training shading mode.
 //!
-//! Maps the dataset lacks (e.g. no albedo in a NeRF-synthetic scene) give `None`, not a failure.
+//! Maps the dataset lacks (e.g. no albedo in a NeRF-synthetic scene) give `None`, not a failure,
+//! and `not_computed` says which metrics are missing and why.
 
 use anyhow::{Context, Result};
 use rayon::prelude::*;
@@ -68,6 +69,41 @@ pub struct Evaluation {
     /// Mean PSNR of re-rendered training views and of the validation views (learned light).
     pub train_psnr: Option<f64>,
     pub val_psnr: Option<f64>,
+    /// The metrics the dataset cannot support, each with the reason ("albedo PSNR: no validation
+    /// view has albedo.png").
+    pub not_computed: Vec<String>,
+}
+
+/// What the dataset lacks for the metrics (empty when every metric can be computed).
+fn missing_metrics(dataset: &Dataset, test_probes: &[Probe], max_test_views: Option<usize>) -> Vec<String> {
+    let mut out = Vec::new();
+    let val = &dataset.val;
+    if val.is_empty() {
+        out.push("validation PSNR, albedo, roughness, metallic and normal metrics: the dataset has no validation views".to_string());
+    } else if !val.iter().any(View::has_albedo) {
+        out.push("albedo PSNR (raw and scaled), roughness and metallic MSE, normal error, scaled relighting: no validation view has albedo.png".to_string());
+    } else {
+        let maps = [
+            ("roughness MSE", "roughness.png", View::has_roughness as fn(&View) -> bool),
+            ("metallic MSE", "metallic.png", View::has_metallic),
+            ("normal error", "normal.png", View::has_normal),
+        ];
+        for (metric, file, has) in maps {
+            if !val.iter().any(has) {
+                out.push(format!("{metric}: no validation view has {file}"));
+            }
+        }
+    }
+    let tests: Vec<&View> = dataset.test.iter().take(max_test_views.unwrap_or(usize::MAX)).collect();
+    let unreferenced: Vec<&str> = test_probes.iter().filter(|p| !tests.iter().any(|v| v.has_relit(&p.name))).map(|p| p.name.as_str()).collect();
+    if test_probes.is_empty() {
+        out.push("relighting PSNR: the scene names no test probes".to_string());
+    } else if unreferenced.len() == test_probes.len() {
+        out.push(format!("relighting PSNR: no test view has a relit image rgba_<probe>.png for the test probes ({})", unreferenced.join(", ")));
+    } else if !unreferenced.is_empty() {
+        out.push(format!("relighting under {}: no test view has its rgba_<probe>.png", unreferenced.join(", ")));
+    }
+    out
 }
 
 fn mean(v: &[f64]) -> Option<f64> {
@@ -159,7 +195,7 @@ pub fn evaluate(
     test_probes: &[Probe],
     settings: &EvalSettings,
 ) -> Result<Evaluated> {
-    let mut out = Evaluation::default();
+    let mut out = Evaluation { not_computed: missing_metrics(dataset, test_probes, settings.max_test_views), ..Default::default() };
     let val_materials = material_metrics(&dataset.val, mesh, bvh, textures, &mut out).context("material metrics on the validation views")?;
 
     let learned = PreparedLight::new(light.clone());

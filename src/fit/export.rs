@@ -13,7 +13,7 @@ use crate::geometry::Mesh;
 use crate::image::io::{write_exr, write_png};
 use crate::image::Image;
 use crate::light::CubeMap;
-use crate::material::{BaseColor, PartMaterial};
+use crate::material::{BaseColor, PartMaterial, Scalar};
 use crate::material::texture_maps::MaterialTextures;
 
 /// Cube faces in `CubeMap` order (OpenGL: +x, −x, +y, −y, +z, −z).
@@ -28,8 +28,8 @@ pub fn single_material_mesh(atlas_mesh: &Mesh, textures: &MaterialTextures) -> M
     let material = PartMaterial {
         name: "learned".into(),
         base_color: BaseColor::Constant(Vec3::new(mean(&textures.kd, 0) as f32, mean(&textures.kd, 1) as f32, mean(&textures.kd, 2) as f32)),
-        roughness: mean(&textures.ks, 1) as f32,
-        metallic: mean(&textures.ks, 2) as f32,
+        roughness: Scalar::Constant(mean(&textures.ks, 1) as f32),
+        metallic: Scalar::Constant(mean(&textures.ks, 2) as f32),
     };
     Mesh {
         positions: atlas_mesh.positions.clone(),

@@ -14,11 +14,12 @@ use serde_json::json;
 use super::mesh::{Mesh, Part};
 use crate::color::srgb_to_linear;
 use crate::image::Image;
-use crate::material::{BaseColor, PartMaterial};
+use crate::material::{BaseColor, PartMaterial, Scalar};
 
-/// A decoded glTF image as linear RGB (8/16-bit data is sRGB-encoded per the spec; float data is
-/// taken as linear).
-fn image_to_linear_rgb(data: &gltf::image::Data) -> Result<Image> {
+/// A decoded glTF image as RGB. Colour images (`srgb`): 8/16-bit data is sRGB-encoded per the
+/// spec and decoded to linear; data images (metallic-roughness) are linear as stored. Float data is
+/// taken as linear either way.
+fn decode_rgb(data: &gltf::image::Data, srgb: bool) -> Result<Image> {
     use gltf::image::Format::*;
     let (channels, bytes, is_float) = match data.format {
         R8 => (1, 1, false),
@@ -36,11 +37,12 @@ fn image_to_linear_rgb(data: &gltf::image::Data) -> Result<Image> {
     if data.pixels.len() != w * h * channels * bytes {
         bail!("image of {w}×{h} has {} bytes, expected {}", data.pixels.len(), w * h * channels * bytes);
     }
+    let curve = |v: f32| if srgb { srgb_to_linear(v) } else { v };
     let value = |k: usize| -> f32 {
         let b = &data.pixels[k * bytes..(k + 1) * bytes];
         match (bytes, is_float) {
-            (1, _) => srgb_to_linear(b[0] as f32 / 255.0),
-            (2, _) => srgb_to_linear(u16::from_ne_bytes([b[0], b[1]]) as f32 / 65535.0),
+            (1, _) => curve(b[0] as f32 / 255.0),
+            (2, _) => curve(u16::from_ne_bytes([b[0], b[1]]) as f32 / 65535.0),
             _ => f32::from_ne_bytes([b[0], b[1], b[2], b[3]]),
         }
     };
@@ -58,11 +60,14 @@ fn material_from_gltf(m: &gltf::Material, images: &[gltf::image::Data], path: &P
     let factor = pbr.base_color_factor();
     let factor = Vec3::new(factor[0], factor[1], factor[2]);
     let name = m.name().map(str::to_string).unwrap_or_else(|| format!("material{}", m.index().unwrap_or(0)));
+    let image = |info: gltf::texture::Info, srgb: bool| -> Result<Image> {
+        let k = info.texture().source().index();
+        let data = images.get(k).with_context(|| format!("{}: material {name}: image {k} missing", path.display()))?;
+        decode_rgb(data, srgb).with_context(|| format!("{}: material {name}, image {k}", path.display()))
+    };
     let base_color = match pbr.base_color_texture() {
         Some(info) => {
-            let k = info.texture().source().index();
-            let data = images.get(k).with_context(|| format!("{}: material {name}: image {k} missing", path.display()))?;
-            let mut img = image_to_linear_rgb(data).with_context(|| format!("{}: material {name}, image {k}", path.display()))?;
+            let mut img = image(info, true)?;
             // The spec multiplies texture by factor; bake it in (the factor is linear).
             if factor != Vec3::ONE {
                 for px in img.data.chunks_exact_mut(3) {
@@ -75,7 +80,19 @@ fn material_from_gltf(m: &gltf::Material, images: &[gltf::image::Data], path: &P
         }
         None => BaseColor::Constant(factor),
     };
-    Ok(PartMaterial { name, base_color, roughness: pbr.roughness_factor(), metallic: pbr.metallic_factor() })
+    let (roughness, metallic) = match pbr.metallic_roughness_texture() {
+        // The spec: roughness in green, metallic in blue, each times its factor.
+        Some(info) => {
+            let img = image(info, false)?;
+            let channel = |c: usize, factor: f32| {
+                let data = img.data.chunks_exact(3).map(|p| p[c] * factor).collect();
+                Scalar::Texture(Arc::new(Image { width: img.width, height: img.height, channels: 1, data }))
+            };
+            (channel(1, pbr.roughness_factor()), channel(2, pbr.metallic_factor()))
+        }
+        None => (Scalar::Constant(pbr.roughness_factor()), Scalar::Constant(pbr.metallic_factor())),
+    };
+    Ok(PartMaterial { name, base_color, roughness, metallic })
 }
 
 struct Loader<'a> {
@@ -150,8 +167,8 @@ impl Loader<'_> {
                     None => PartMaterial {
                         name: "default".into(),
                         base_color: BaseColor::Constant(Vec3::ONE), // glTF's default material
-                        roughness: 1.0,
-                        metallic: 1.0,
+                        roughness: Scalar::Constant(1.0),
+                        metallic: Scalar::Constant(1.0),
                     },
                 };
                 self.mesh.materials.push(mat);
@@ -174,8 +191,9 @@ impl Loader<'_> {
 
 /// Load a `.gltf` or `.glb` file: every triangle primitive of the default scene (node transforms
 /// applied; normals by the inverse transpose) becomes a part. Materials: baseColorFactor
-/// (× baseColorTexture, sRGB-decoded and baked), roughnessFactor, metallicFactor.
-/// Not read: metallicRoughnessTexture, normal/occlusion/emissive maps, texCoord sets other than 0.
+/// (× baseColorTexture, sRGB-decoded and baked), roughnessFactor and metallicFactor (× the green and
+/// blue channels of metallicRoughnessTexture, linear, baked).
+/// Not read: normal/occlusion/emissive maps, texCoord sets other than 0.
 pub fn load_gltf(path: impl AsRef<Path>) -> Result<Mesh> {
     let path = path.as_ref();
     let (doc, buffers, images) = gltf::import(path).with_context(|| format!("reading glTF file {}", path.display()))?;
@@ -302,8 +320,8 @@ pub fn write_gltf(path: impl AsRef<Path>, mesh: &Mesh, base_color_textures: &[Op
         };
         let mut pbr = json!({
             "baseColorFactor": [factor.x, factor.y, factor.z, 1.0],
-            "metallicFactor": m.metallic,
-            "roughnessFactor": m.roughness,
+            "metallicFactor": m.metallic.mean(),
+            "roughnessFactor": m.roughness.mean(),
         });
         if let Some(Some(uri)) = base_color_textures.get(i) {
             images.push(json!({ "uri": uri }));
@@ -361,5 +379,42 @@ pub fn write_gltf(path: impl AsRef<Path>, mesh: &Mesh, base_color_textures: &[Op
     } else {
         std::fs::write(&bin_name, &w.bin).with_context(|| format!("writing {}", bin_name.display()))?;
         std::fs::write(path, text).with_context(|| format!("writing {}", path.display()))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::geometry::primitives::MeshBuilder;
+
+    #[test]
+    fn metallic_roughness_texture_gives_linear_roughness_and_metallic_textures() {
+        let dir = std::env::temp_dir().join(format!("reconstruct-gltf-orm-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).expect("test setup");
+        let mut b = MeshBuilder::new();
+        let part = b.part(PartMaterial::constant("m", Vec3::ONE, 0.5, 0.0));
+        b.cylinder(part, Vec2::ZERO, 1.0, 0.0, 1.0, 8);
+        let path = dir.join("orm.gltf");
+        write_gltf(&path, &b.build(), &[]).expect("test setup");
+        // Add a metallicRoughness texture (codes: green = roughness, blue = metallic) with factors.
+        let codes: Vec<u8> = (0..4u8).flat_map(|i| [7, 40 + 50 * i, 250 - 60 * i]).collect();
+        image::RgbImage::from_raw(2, 2, codes.clone()).expect("test setup").save(dir.join("orm.png")).expect("test setup");
+        let mut doc: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&path).expect("written")).expect("json");
+        doc["images"] = json!([{ "uri": "orm.png" }]);
+        doc["textures"] = json!([{ "source": 0 }]);
+        let pbr = &mut doc["materials"][0]["pbrMetallicRoughness"];
+        pbr["metallicRoughnessTexture"] = json!({ "index": 0 });
+        pbr["roughnessFactor"] = json!(0.5);
+        pbr["metallicFactor"] = json!(1.0);
+        std::fs::write(&path, doc.to_string()).expect("test setup");
+
+        let mesh = load_gltf(&path).expect("loads");
+        let m = &mesh.materials[0];
+        let (Scalar::Texture(r), Scalar::Texture(k)) = (&m.roughness, &m.metallic) else { panic!("not textured: {m:?}") };
+        for (i, px) in codes.chunks_exact(3).enumerate() {
+            assert!((r.data[i] - 0.5 * px[1] as f32 / 255.0).abs() < 1e-6, "roughness texel {i}");
+            assert!((k.data[i] - px[2] as f32 / 255.0).abs() < 1e-6, "metallic texel {i}");
+        }
+        std::fs::remove_dir_all(&dir).ok();
     }
 }

@@ -11,6 +11,8 @@ pub mod hull;
 pub mod manifold;
 pub mod mask_distance;
 pub mod icosphere;
+pub mod ground_truth;
+pub mod materials_json;
 pub mod mesh;
 pub mod obj;
 pub mod primitives;

@@ -1,23 +1,20 @@
-//! Wavefront OBJ/MTL files: loading (tobj), the hotdog ground truth (`gt/` folder with its
-//! authoritative `materials.json`), and writing meshes back out for exports.
+//! Wavefront OBJ/MTL files: loading (tobj), with or without the MTL materials, and writing meshes
+//! back out for exports.
 
 use std::collections::HashMap;
 use std::fmt::Write as _;
-use std::path::{Path, PathBuf};
-use std::sync::Arc;
+use std::path::Path;
 
 use anyhow::{bail, Context, Result};
 use glam::{Vec2, Vec3};
-use serde::Deserialize;
 
 use super::mesh::{Mesh, Part};
-use super::texture_file::load_srgb_texture;
-use crate::image::Image;
-use crate::material::{BaseColor, PartMaterial};
+use super::texture_file::TextureCache;
+use crate::material::{BaseColor, PartMaterial, Scalar};
 
 /// Material of parts whose file names none (Blender's default grey, fairly rough dielectric).
 fn default_material(name: &str) -> PartMaterial {
-    PartMaterial { name: name.to_string(), base_color: BaseColor::Constant(Vec3::splat(0.8)), roughness: 0.5, metallic: 0.0 }
+    PartMaterial { name: name.to_string(), base_color: BaseColor::Constant(Vec3::splat(0.8)), roughness: Scalar::Constant(0.5), metallic: Scalar::Constant(0.0) }
 }
 
 /// Blender's OBJ exporter writes Ns = (1 − roughness)²·1000; invert it.
@@ -205,45 +202,37 @@ fn parse_unknown(m: &tobj::Material, key: &str, path: &Path) -> Result<Option<f3
 }
 
 /// An MTL material as a PartMaterial. `textures` caches decoded files shared by several materials.
-fn material_from_mtl(
-    m: &tobj::Material,
-    dir: &Path,
-    obj_path: &Path,
-    textures: &mut HashMap<PathBuf, Arc<Image>>,
-) -> Result<PartMaterial> {
-    let roughness = match parse_unknown(m, "Pr", obj_path)? {
+fn material_from_mtl(m: &tobj::Material, dir: &Path, obj_path: &Path, textures: &mut TextureCache) -> Result<PartMaterial> {
+    let context = |key: &str| format!("{key} of material {} in the MTL of {}", m.name, obj_path.display());
+    let constant_roughness = match parse_unknown(m, "Pr", obj_path)? {
         Some(r) => r,
         None => m.shininess.map(roughness_from_ns).unwrap_or(0.5),
     };
-    let metallic = parse_unknown(m, "Pm", obj_path)?.unwrap_or(0.0);
+    // `map_Pr` / `map_Pm` (the PBR extension write_obj uses): linear single-value images.
+    let scalar = |key: &str, constant: f32, textures: &mut TextureCache| -> Result<Scalar> {
+        Ok(match m.unknown_param.get(key) {
+            Some(file) => Scalar::Texture(textures.linear(&dir.join(file.trim()), 0).with_context(|| context(key))?),
+            None => Scalar::Constant(constant.clamp(0.0, 1.0)),
+        })
+    };
+    let roughness = scalar("map_Pr", constant_roughness, textures)?;
+    let metallic = scalar("map_Pm", parse_unknown(m, "Pm", obj_path)?.unwrap_or(0.0), textures)?;
     let base_color = match &m.diffuse_texture {
-        Some(file) => {
-            let tex_path = dir.join(file);
-            let tex = match textures.get(&tex_path) {
-                Some(t) => t.clone(),
-                None => {
-                    let t = load_srgb_texture(&tex_path)
-                        .with_context(|| format!("map_Kd of material {} in the MTL of {}", m.name, obj_path.display()))?;
-                    textures.insert(tex_path, t.clone());
-                    t
-                }
-            };
-            BaseColor::Texture(tex)
-        }
+        Some(file) => BaseColor::Texture(textures.srgb(&dir.join(file)).with_context(|| context("map_Kd"))?),
         None => BaseColor::Constant(m.diffuse.map(Vec3::from_array).unwrap_or(Vec3::splat(0.8))),
     };
-    Ok(PartMaterial { name: m.name.clone(), base_color, roughness: roughness.clamp(0.0, 1.0), metallic: metallic.clamp(0.0, 1.0) })
+    Ok(PartMaterial { name: m.name.clone(), base_color, roughness, metallic })
 }
 
 /// Load an OBJ file (and its MTL) as a Mesh: one part per object/group + material.
-/// Materials: `Kd` = linear base colour, `map_Kd` = sRGB texture, roughness from `Pr` (else from
-/// `Ns` by Blender's rule), metallic from `Pm`. Missing normals are computed (area-weighted);
-/// parts without `vt` get zero UVs and `has_uv = false`.
+/// Materials: `Kd` = linear base colour, `map_Kd` = sRGB texture, roughness from `map_Pr` (linear
+/// texture), else `Pr`, else `Ns` by Blender's rule; metallic from `map_Pm`, else `Pm`. Missing
+/// normals are computed (area-weighted); parts without `vt` get zero UVs and `has_uv = false`.
 pub fn load_obj(path: impl AsRef<Path>) -> Result<Mesh> {
     let path = path.as_ref();
     let ObjGeometry { mut mesh, part_mtl, mtl } = read_obj_geometry(path)?;
     let dir = path.parent().unwrap_or(Path::new("."));
-    let mut textures = HashMap::new();
+    let mut textures = TextureCache::default();
     // Only materials that parts use, in order of first use.
     let mut mtl_to_material: HashMap<usize, usize> = HashMap::new();
     for (part, mtl_id) in mesh.parts.iter_mut().zip(part_mtl) {
@@ -270,84 +259,13 @@ pub fn load_obj(path: impl AsRef<Path>) -> Result<Mesh> {
     Ok(mesh)
 }
 
-#[derive(Deserialize)]
-struct GtPart {
-    name: String,
-    material: String,
-}
-
-#[derive(Deserialize)]
-#[serde(untagged)]
-enum GtBaseColor {
-    Constant([f32; 3]),
-    Texture { texture: String, colorspace: Option<String> },
-}
-
-#[derive(Deserialize)]
-struct GtMaterial {
-    base_color: GtBaseColor,
-    roughness: f32,
-    metallic: f32,
-}
-
-#[derive(Deserialize)]
-struct GtMaterials {
-    parts: Vec<GtPart>,
-    materials: HashMap<String, GtMaterial>,
-}
-
-/// Load the hotdog's ground truth from its `gt/` folder: `hotdog.obj` for geometry and
-/// `materials.json` (authoritative) for the materials, mapped to parts by its `parts` list.
-pub fn load_ground_truth(gt_dir: impl AsRef<Path>) -> Result<Mesh> {
-    let gt_dir = gt_dir.as_ref();
-    let json_path = gt_dir.join("materials.json");
-    let text = std::fs::read_to_string(&json_path).with_context(|| format!("reading {}", json_path.display()))?;
-    let spec: GtMaterials = serde_json::from_str(&text).with_context(|| format!("parsing {}", json_path.display()))?;
-
-    let obj_path = gt_dir.join("hotdog.obj");
-    let ObjGeometry { mut mesh, .. } = read_obj_geometry(&obj_path)?;
-
-    // Materials in the order the parts list first names them; textures decoded once.
-    let mut textures: HashMap<String, Arc<Image>> = HashMap::new();
-    let mut index_of: HashMap<String, usize> = HashMap::new();
-    for gp in &spec.parts {
-        if index_of.contains_key(&gp.material) {
-            continue;
-        }
-        let gm = spec.materials.get(&gp.material).with_context(|| {
-            format!("{}: part {} names material {} which is not in `materials`", json_path.display(), gp.name, gp.material)
-        })?;
-        let base_color = match &gm.base_color {
-            GtBaseColor::Constant(c) => BaseColor::Constant(Vec3::from_array(*c)),
-            GtBaseColor::Texture { texture, colorspace } => {
-                if colorspace.as_deref().is_some_and(|c| !c.eq_ignore_ascii_case("srgb")) {
-                    bail!("{}: material {}: only sRGB base-colour textures are supported, got {:?}", json_path.display(), gp.material, colorspace);
-                }
-                let tex = match textures.get(texture) {
-                    Some(t) => t.clone(),
-                    None => {
-                        let t = load_srgb_texture(&gt_dir.join(texture))
-                            .with_context(|| format!("{}: material {}", json_path.display(), gp.material))?;
-                        textures.insert(texture.clone(), t.clone());
-                        t
-                    }
-                };
-                BaseColor::Texture(tex)
-            }
-        };
-        index_of.insert(gp.material.clone(), mesh.materials.len());
-        mesh.materials.push(PartMaterial { name: gp.material.clone(), base_color, roughness: gm.roughness, metallic: gm.metallic });
-    }
-    for part in &mut mesh.parts {
-        let gp = spec.parts.iter().find(|p| p.name == part.name).with_context(|| {
-            format!("{} has object {} that {} does not list", obj_path.display(), part.name, json_path.display())
-        })?;
-        part.material = index_of[&gp.material];
-    }
-    if let Some(gp) = spec.parts.iter().find(|gp| !mesh.parts.iter().any(|p| p.name == gp.name)) {
-        bail!("{} lists part {} that {} does not contain", json_path.display(), gp.name, obj_path.display());
-    }
-    Ok(mesh)
+/// An OBJ file's geometry with one part per object/group + material, and the name of each part's
+/// MTL material (None without one); no material is read (`mesh.materials` is empty and every part
+/// points at material 0: the caller supplies the materials, e.g. from a `materials.json`).
+pub fn load_obj_geometry(path: impl AsRef<Path>) -> Result<(Mesh, Vec<Option<String>>)> {
+    let ObjGeometry { mesh, part_mtl, mtl } = read_obj_geometry(path.as_ref())?;
+    let names = part_mtl.iter().map(|k| k.and_then(|k| mtl.get(k)).map(|m| m.name.clone())).collect();
+    Ok((mesh, names))
 }
 
 /// Texture file names an exported material refers to (the caller writes the images).
@@ -378,10 +296,10 @@ pub fn write_obj(path: impl AsRef<Path>, mesh: &Mesh, textures: &[MaterialTextur
             BaseColor::Texture(_) => Vec3::ONE, // the map carries the colour
         };
         writeln!(mtl, "\nnewmtl {}", m.name)?;
-        writeln!(mtl, "Ns {:.6}", ns_from_roughness(m.roughness))?;
+        writeln!(mtl, "Ns {:.6}", ns_from_roughness(m.roughness.mean()))?;
         writeln!(mtl, "Kd {:.6} {:.6} {:.6}", kd.x, kd.y, kd.z)?;
         writeln!(mtl, "Ks 0.500000 0.500000 0.500000\nNi 1.450000\nd 1.000000\nillum 2")?;
-        writeln!(mtl, "Pr {:.6}\nPm {:.6}", m.roughness, m.metallic)?;
+        writeln!(mtl, "Pr {:.6}\nPm {:.6}", m.roughness.mean(), m.metallic.mean())?;
         if let Some(t) = &names.base_color {
             writeln!(mtl, "map_Kd {t}")?;
         }
@@ -430,7 +348,9 @@ pub fn write_obj(path: impl AsRef<Path>, mesh: &Mesh, textures: &[MaterialTextur
 #[cfg(test)]
 mod tests {
     use super::*;
+    use std::path::PathBuf;
     use crate::geometry::texture_file::save_srgb_texture;
+    use crate::image::Image;
 
     fn tmp_dir(tag: &str) -> PathBuf {
         let d = std::env::temp_dir().join(format!("reconstruct-obj-{tag}-{}", std::process::id()));
@@ -455,9 +375,10 @@ mod tests {
         let mut tex = Image::new(2, 2, 3);
         tex.data = vec![1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.5, 0.5, 0.5];
         save_srgb_texture(&dir.join("t.png"), &tex).expect("test setup");
+        image::GrayImage::from_raw(2, 1, vec![51, 204]).expect("test setup").save(dir.join("m.png")).expect("test setup");
         std::fs::write(
             dir.join("m.mtl"),
-            "newmtl A\nKd 0.2 0.4 0.6\nNs 250\nPm 0.25\nnewmtl B\nKd 1 1 1\nPr 0.7\nmap_Kd t.png\n",
+            "newmtl A\nKd 0.2 0.4 0.6\nNs 250\nPm 0.25\nnewmtl B\nKd 1 1 1\nPr 0.7\nmap_Kd t.png\nmap_Pm m.png\n",
         )
         .expect("test setup");
         // Part `a` has no vt and no vn; part `b` has both.
@@ -480,10 +401,13 @@ mod tests {
             }
         }
         let a = &mesh.materials[mesh.parts[0].material];
-        assert!((a.roughness - 0.5).abs() < 1e-6 && (a.metallic - 0.25).abs() < 1e-6);
+        assert!((a.roughness.constant().unwrap() - 0.5).abs() < 1e-6 && a.metallic.constant() == Some(0.25));
         assert!(matches!(a.base_color, BaseColor::Constant(c) if (c - Vec3::new(0.2, 0.4, 0.6)).length() < 1e-6));
         let b = &mesh.materials[mesh.parts[1].material];
-        assert!((b.roughness - 0.7).abs() < 1e-6);
+        assert!((b.roughness.constant().unwrap() - 0.7).abs() < 1e-6);
+        // map_Pm: a linear grey texture, codes 51 and 204 → 0.2 and 0.8 exactly as stored.
+        let Scalar::Texture(m) = &b.metallic else { panic!("map_Pm not read: {:?}", b.metallic) };
+        assert!((m.data[0] - 0.2).abs() < 1e-6 && (m.data[1] - 0.8).abs() < 1e-6, "{:?}", m.data);
         // Texel (1,1) (bottom right) is sRGB 188/255 → linear ≈ 0.5; vt v = 0 is the bottom row.
         let p = b.eval(Vec2::new(0.75, 0.25));
         assert!((p.kd - Vec3::splat(0.5)).abs().max_element() < 0.01, "{:?}", p.kd);
@@ -515,7 +439,5 @@ mod tests {
     fn missing_files_name_the_file() {
         let err = load_obj("/nonexistent/dir/x.obj").unwrap_err();
         assert!(format!("{err:#}").contains("/nonexistent/dir/x.obj"), "{err:#}");
-        let err = load_ground_truth("/nonexistent/gt").unwrap_err();
-        assert!(format!("{err:#}").contains("materials.json"), "{err:#}");
     }
 }

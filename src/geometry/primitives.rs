@@ -115,10 +115,10 @@ impl MeshBuilder {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::material::BaseColor;
+    use crate::material::{BaseColor, Scalar};
 
     fn material() -> PartMaterial {
-        PartMaterial { name: "m".into(), base_color: BaseColor::Constant(Vec3::ONE), roughness: 0.5, metallic: 0.0 }
+        PartMaterial { name: "m".into(), base_color: BaseColor::Constant(Vec3::ONE), roughness: Scalar::Constant(0.5), metallic: Scalar::Constant(0.0) }
     }
 
     /// Signed volume by the divergence theorem: positive for outward-wound closed meshes.

@@ -86,7 +86,7 @@ pub fn run(opts: &AblationOptions) -> Result<AblationReport> {
     let base = &opts.base;
     std::fs::create_dir_all(&base.out).with_context(|| format!("cannot create {}", base.out.display()))?;
     let prepared = prepare(&base.scene, base.data.as_ref(), base.geometry, &base.geometry_pass, &base.fit, 1, base.progress)?;
-    let ctx = prior_context(&prepared, base.fit.seed, base.idarb_weights.clone());
+    let ctx = prior_context(base.fit.seed, base.idarb_weights.clone());
     let mut sources = opts.sources.clone();
     for &l in &opts.sweep {
         let s = if l == 0.0 { PriorSource::Oracle } else { PriorSource::IdarbSim(l) };

@@ -17,9 +17,8 @@ use serde::Serialize;
 use crate::fit::geometry_pass::{run_geometry_pass, GeometryPassConfig, GeometryStep, GeometryTimings, GeometryView};
 use crate::geometry::hull::{visual_hull, HullOptions, MaskView};
 use crate::geometry::Mesh;
-use crate::jobs::render::ground_truth_mesh;
 use crate::scene::dataset::Dataset;
-use crate::scene::SceneSpec;
+use crate::scene::{ground_truth_mesh, ground_truth_source, SceneSpec};
 
 /// Where the geometry comes from.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
@@ -89,28 +88,12 @@ pub struct GeometryOutcome {
     pub report: GeometryReport,
 }
 
-/// Whether the scene's data has a mesh to use, without reading it.
-pub fn has_ground_truth_mesh(spec: &SceneSpec) -> bool {
-    if spec.generator.is_some() && spec.ground_truth.is_some() {
-        return true;
-    }
-    let Some(dir) = spec.gt_dir() else { return false };
-    std::fs::read_dir(&dir)
-        .map(|entries| {
-            entries.flatten().any(|e| {
-                let p = e.path();
-                matches!(p.extension().and_then(|x| x.to_str()), Some("obj" | "gltf" | "glb"))
-            })
-        })
-        .unwrap_or(false)
-}
-
 /// The geometry of a run on `dataset` from `source`.
 pub fn obtain_geometry(spec: &SceneSpec, dataset: &Dataset, source: GeometrySource, pass: &GeometryPassConfig, progress: bool) -> Result<GeometryOutcome> {
     let (used, why) = match source {
         GeometrySource::GroundTruth => (GeometrySource::GroundTruth, "set by the run (--geometry gt)".to_string()),
         GeometrySource::Reconstruct => (GeometrySource::Reconstruct, "set by the run (--geometry reconstruct)".to_string()),
-        GeometrySource::Auto if has_ground_truth_mesh(spec) => {
+        GeometrySource::Auto if ground_truth_source(spec)?.is_some() => {
             (GeometrySource::GroundTruth, "auto: the scene's data has a ground-truth mesh".to_string())
         }
         GeometrySource::Auto => (GeometrySource::Reconstruct, "auto: the scene's data has no mesh, so it is reconstructed from the images".to_string()),

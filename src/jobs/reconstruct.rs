@@ -325,14 +325,13 @@ pub fn views_with_prior(prepared: &Prepared, source: &PriorSource, ctx: &PriorCo
     Ok((views, format!("{} — {count} of {} training views labelled", prior.describe(), prepared.views.len())))
 }
 
-/// The prior context of a run on `prepared` (geometry for simulated labels, cache for IDArb's).
-pub fn prior_context(prepared: &Prepared, seed: u64, idarb_weights: Option<PathBuf>) -> PriorContext {
+/// The prior context of a run (seed for simulated labels, cache for IDArb's; no label source reads the geometry).
+pub fn prior_context(seed: u64, idarb_weights: Option<PathBuf>) -> PriorContext {
     PriorContext {
         idarb_weights,
         cache_dir: crate::scene::spec::cache_dir(),
         idarb: IdarbOptions::default(),
         seed,
-        geometry: Some((Arc::new(prepared.atlas.mesh.clone()), prepared.bvh.clone())),
     }
 }
 
@@ -343,7 +342,7 @@ pub fn run(opts: &ReconstructOptions, prior: &PriorSource) -> Result<Reconstruct
         eprintln!("scene {}: {} training views; atlas: {}", prepared.spec.name, prepared.views.len(), atlas_description(&prepared.atlas));
         eprintln!("effects: {}", prepared.effects);
     }
-    let ctx = prior_context(&prepared, opts.fit.seed, opts.idarb_weights.clone());
+    let ctx = prior_context(opts.fit.seed, opts.idarb_weights.clone());
     let (views, description) = views_with_prior(&prepared, prior, &ctx, opts.labelled_views)?;
     if opts.progress {
         eprintln!("prior: {description}");
@@ -378,6 +377,9 @@ impl ReconstructReport {
             e.metallic_mse.map_or("-".into(), |v| format!("{v:.4}")),
             f(e.normal_error_deg),
         );
+        for line in &e.not_computed {
+            s.push_str(&format!("\nnot computed: {line}"));
+        }
         for (stage, secs) in &self.stage_seconds {
             s.push_str(&format!("\n{stage}: {secs:.1} s"));
         }

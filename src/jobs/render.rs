@@ -12,7 +12,6 @@ use serde::Serialize;
 
 use crate::eval::metrics::{mask_from_alpha, over_white, psnr};
 use crate::geometry::bvh::Bvh;
-use crate::geometry::obj::load_ground_truth;
 use crate::geometry::Mesh;
 use crate::image::{io, Image};
 use crate::light::CubeMap;
@@ -21,10 +20,10 @@ use crate::render::gbuffer::GBuffer;
 use crate::render::view::{render_view, PreparedLight, RenderSettings, ShadingMode};
 use crate::scene::dataset::{Dataset, View};
 use crate::scene::probe::Probe;
-use crate::scene::{default_scene, SceneSpec};
+use crate::scene::SceneSpec;
+// Ground-truth loading lives in scene::ground_truth; re-exported for the jobs that used it from here.
+pub use crate::scene::ground_truth::{ground_truth_mesh, BUILTIN_DEFAULT_GT};
 
-/// Ground-truth folder value meaning "the generator's own mesh" (see scenes/default.toml).
-pub const BUILTIN_DEFAULT_GT: &str = "builtin:default";
 /// Resolution of the cube map a lat-long probe is converted to.
 pub const CUBE_RES: usize = 64;
 
@@ -36,7 +35,7 @@ pub struct RenderOptions {
     /// View names (e.g. `test_049`); empty means every test view.
     pub views: Vec<String>,
     /// `train` (the training probe), a test-probe name, or a .hdr/.exr path; empty means the
-    /// training probe and every test probe.
+    /// training probe (when the scene names one) and every test probe.
     pub probes: Vec<String>,
     pub modes: Vec<ShadingMode>,
     pub spp: u32,
@@ -74,18 +73,6 @@ impl RenderReport {
     pub fn mean_psnr(&self, mode: ShadingMode) -> Option<f64> {
         let scores: Vec<f64> = self.renders.iter().filter(|r| r.mode == mode).filter_map(|r| r.psnr_db).collect();
         (!scores.is_empty()).then(|| scores.iter().sum::<f64>() / scores.len() as f64)
-    }
-}
-
-/// The scene's ground-truth mesh with its materials.
-pub fn ground_truth_mesh(spec: &SceneSpec) -> Result<Mesh> {
-    match &spec.ground_truth {
-        Some(g) if g.as_os_str() == BUILTIN_DEFAULT_GT => Ok(default_scene::mesh()),
-        Some(_) => {
-            let dir = spec.gt_dir().expect("ground truth folder is set");
-            load_ground_truth(&dir).with_context(|| format!("loading the ground truth of scene {:?}", spec.name))
-        }
-        None => bail!("scene {:?} has no ground truth (no [ground_truth] folder in its spec)", spec.name),
     }
 }
 
@@ -152,7 +139,8 @@ pub fn run(opts: &RenderOptions) -> Result<RenderReport> {
 
     let views: Vec<&View> = if opts.views.is_empty() { dataset.test.iter().collect() } else { opts.views.iter().map(|n| dataset.view(n)).collect::<Result<_>>()? };
     let probe_keys: Vec<String> = if opts.probes.is_empty() {
-        std::iter::once("train".to_string()).chain(spec.test_probes.names.iter().cloned()).collect()
+        // The training probe is optional (a reconstruction learns the light).
+        spec.train_probe.iter().map(|_| "train".to_string()).chain(spec.test_probes.names.iter().cloned()).collect()
     } else {
         opts.probes.clone()
     };

@@ -98,6 +98,9 @@ pub fn markdown(r: &ReconstructReport, plots: &[(String, String)]) -> String {
     for (k, v) in rows {
         let _ = writeln!(s, "| {k} | {v} |");
     }
+    for line in &e.not_computed {
+        let _ = writeln!(s, "\nNot computed — {line}.");
+    }
     if let Some(sc) = e.albedo_scale {
         let _ = writeln!(s, "\nAlbedo scale (first validation view, linear): {:.3}, {:.3}, {:.3}", sc[0], sc[1], sc[2]);
     }

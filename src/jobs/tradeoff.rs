@@ -92,7 +92,7 @@ pub fn run(base: &ReconstructOptions, points: &[TradeoffPoint]) -> Result<Vec<Tr
         }
         let prep = &prepared.iter().find(|(d, _)| *d == pt.downscale).expect("prepared above").1;
         let source: PriorSource = pt.prior.parse()?;
-        let ctx = prior_context(prep, base.fit.seed, base.idarb_weights.clone());
+        let ctx = prior_context(base.fit.seed, base.idarb_weights.clone());
         let (views, description) = views_with_prior(prep, &source, &ctx, pt.labelled_views)?;
         let mut o = base.clone();
         o.out = base.out.join(format!("{k:02}"));

@@ -7,4 +7,4 @@ mod part;
 pub mod texture_maps;
 
 pub use field::MaterialField;
-pub use part::{BaseColor, PartMaterial, SurfaceParams};
+pub use part::{BaseColor, PartMaterial, Scalar, SurfaceParams};

@@ -5,24 +5,28 @@
 //!   residue", and a blur;
 //! - normals: a smooth rotation field; roughness: a smooth offset field plus a bias; metallic: a
 //!   smooth non-negative bias field (false metal where there is none);
-//! - every field is a function of the 3D surface point (traced on the known geometry), so the same
-//!   point gets the same error in every view, as a multi-view network's errors are correlated.
+//! - every field is a function of the 3D surface point, so the same point gets the same error in
+//!   every view, as a multi-view network's errors are correlated.
+//!
+//! It stands in for a network that sees only the images, so it reads only the dataset's per-view
+//! maps, never a mesh: the labels are the view's ground-truth maps, and the surface points are the
+//! view's `depth.exr` back-projected through its camera. A view without a depth map uses its pixel
+//! positions on the image plane instead (errors stay smooth but are no longer consistent across
+//! views). The fields' wavelengths scale with the object's size, measured once from the depth
+//! points of every training view.
 //!
 //! LEVEL scales every amplitude (0 = oracle, 1 = IDArb's figures, 2 = twice the error). The
 //! amplitudes below were calibrated on the hotdog's training views (tests/prior_sim_calibration.rs
 //! measures them at LEVEL 1).
 
-use std::sync::Arc;
+use std::sync::OnceLock;
 
-use anyhow::Result;
+use anyhow::{Context, Result};
 use glam::Vec3;
 use rayon::prelude::*;
 
 use crate::color::{linear_to_srgb, srgb_to_linear};
-use crate::geometry::bvh::Bvh;
-use crate::geometry::Mesh;
 use crate::image::Image;
-use crate::render::gbuffer::GBuffer;
 use crate::rng::Sampler;
 use crate::scene::dataset::{Dataset, View};
 
@@ -71,24 +75,62 @@ impl SmoothField {
 pub struct SimulatedIdarb {
     pub level: f64,
     pub seed: u64,
-    geometry: Option<(Arc<Mesh>, Arc<Bvh>)>,
+    /// The object's size (bounding-box diagonal of every training view's depth points), found on
+    /// first use.
+    object_size: OnceLock<f32>,
+}
+
+/// Surface points of a view: its depth map back-projected through its camera (None where the depth
+/// is 0, i.e. background), or `None` when the view has no depth map.
+pub fn depth_points(view: &View) -> Result<Option<Vec<Option<Vec3>>>> {
+    let Some(depth) = view.load_depth_if_present().with_context(|| format!("depth map of view {}", view.name))? else { return Ok(None) };
+    let cam = &view.camera;
+    let (origin, forward) = (cam.origin(), cam.forward());
+    let points = (0..depth.pixel_count())
+        .into_par_iter()
+        .map(|i| {
+            let d = depth.data[i];
+            if !(d.is_finite() && d > 0.0) {
+                return None;
+            }
+            let dir = cam.ray_dir((i % depth.width) as f32 + 0.5, (i / depth.width) as f32 + 0.5);
+            // The map holds planar depth along the view axis, not the distance along the ray.
+            Some(origin + dir * (d / dir.dot(forward)))
+        })
+        .collect();
+    Ok(Some(points))
+}
+
+/// Pixel positions on the image plane in units of `size` (for views without a depth map).
+fn image_plane_points(view: &View, size: f32) -> Vec<Option<Vec3>> {
+    let (w, h) = (view.camera.width, view.camera.height);
+    (0..w * h).map(|i| Some(Vec3::new((i % w) as f32 / w as f32, (i / w) as f32 / h as f32, 0.0) * size)).collect()
 }
 
 impl SimulatedIdarb {
-    pub fn new(level: f64, seed: u64, geometry: Option<(Arc<Mesh>, Arc<Bvh>)>) -> Self {
-        SimulatedIdarb { level, seed, geometry }
+    pub fn new(level: f64, seed: u64) -> Self {
+        SimulatedIdarb { level, seed, object_size: OnceLock::new() }
     }
 
-    /// Surface point per pixel: traced on the geometry when known, else the pixel's position on
-    /// the image plane (errors then stay smooth but are not consistent across views).
-    fn surface_points(&self, view: &View) -> Vec<Option<Vec3>> {
-        match &self.geometry {
-            Some((mesh, bvh)) => GBuffer::trace(mesh, bvh, &view.camera).surfels.iter().map(|s| s.map(|s| s.position)).collect(),
-            None => {
-                let (w, h) = (view.camera.width, view.camera.height);
-                (0..w * h).map(|i| Some(Vec3::new((i % w) as f32 / w as f32, (i / w) as f32 / h as f32, 0.0))).collect()
+    /// The bounding-box diagonal of the depth points of every training view (1 when no view has a
+    /// depth map: the image plane's units). Only fully covered pixels count: a partly covered
+    /// pixel's depth may blend the object with the background and land in front of the object.
+    fn object_size(&self, dataset: &Dataset) -> Result<f32> {
+        if let Some(s) = self.object_size.get() {
+            return Ok(*s);
+        }
+        let (mut lo, mut hi) = (Vec3::splat(f32::MAX), Vec3::splat(f32::MIN));
+        for view in &dataset.train {
+            let Some(points) = depth_points(view)? else { continue };
+            let alpha = view.load_alpha()?;
+            for (p, a) in points.iter().zip(&alpha.data) {
+                if let Some(p) = p.filter(|_| *a >= 1.0) {
+                    (lo, hi) = (lo.min(p), hi.max(p));
+                }
             }
         }
+        let size = if lo.x <= hi.x { (hi - lo).length().max(1e-3) } else { 1.0 };
+        Ok(*self.object_size.get_or_init(|| size))
     }
 }
 
@@ -132,12 +174,11 @@ fn gaussian_blur(img: &Image, mask: &Image, sigma: f32) -> Image {
 }
 
 /// Degrades one view's ground-truth labels (see the module doc). `view_stream` separates views'
-/// colour-scale errors; `points` are the pixels' surface points.
+/// colour-scale errors; `points` are the pixels' surface points and `object_size` the length the
+/// fields' wavelengths are relative to.
 #[allow(clippy::needless_range_loop)]
-pub fn degrade(gt: &ViewLabels, points: &[Option<Vec3>], view_stream: u64, level: f32, seed: u64) -> ViewLabels {
-    let pts: Vec<Vec3> = points.iter().flatten().copied().collect();
-    let (lo, hi) = pts.iter().fold((Vec3::splat(f32::MAX), Vec3::splat(f32::MIN)), |(a, b), p| (a.min(*p), b.max(*p)));
-    let size = if pts.is_empty() { 1.0 } else { (hi - lo).length().max(1e-3) };
+pub fn degrade(gt: &ViewLabels, points: &[Option<Vec3>], object_size: f32, view_stream: u64, level: f32, seed: u64) -> ViewLabels {
+    let size = object_size;
     let field = |k: u64| SmoothField::new(seed, 1000 + k, size);
     let (residue, nx, ny, nz, rough, metal) = (field(0), field(1), field(2), field(3), field(4), field(5));
     let mut rng = Sampler::new(seed ^ 0x00a1_bed0, view_stream);
@@ -172,15 +213,21 @@ pub fn degrade(gt: &ViewLabels, points: &[Option<Vec3>], view_stream: u64, level
 
 impl Prior for SimulatedIdarb {
     fn describe(&self) -> String {
-        format!("idarb-sim (ground truth degraded to {:.2}× IDArb's published error) — simulated, not IDArb output", self.level)
+        format!(
+            "idarb-sim (ground-truth maps degraded to {:.2}× IDArb's published error, errors placed on the surface points of each \
+             view's depth map; no mesh is read) — simulated, not IDArb output",
+            self.level
+        )
     }
     fn labels(&self, dataset: &Dataset, views: &[usize]) -> Result<Vec<Option<ViewLabels>>> {
+        let size = self.object_size(dataset)?;
         views
             .iter()
             .map(|&i| {
                 let view = &dataset.train[i];
                 let gt = view_labels(view)?;
-                Ok(Some(degrade(&gt, &self.surface_points(view), i as u64, self.level as f32, self.seed)))
+                let points = depth_points(view)?.unwrap_or_else(|| image_plane_points(view, size));
+                Ok(Some(degrade(&gt, &points, size, i as u64, self.level as f32, self.seed)))
             })
             .collect()
     }

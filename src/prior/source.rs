@@ -4,12 +4,9 @@
 
 use std::path::PathBuf;
 use std::str::FromStr;
-use std::sync::Arc;
 
 use anyhow::{bail, Context, Result};
 
-use crate::geometry::bvh::Bvh;
-use crate::geometry::Mesh;
 use crate::image::Image;
 use crate::scene::dataset::Dataset;
 
@@ -86,8 +83,6 @@ pub struct PriorContext {
     pub cache_dir: PathBuf,
     pub idarb: IdarbOptions,
     pub seed: u64,
-    /// The known geometry (surface points make simulated errors consistent across views).
-    pub geometry: Option<(Arc<Mesh>, Arc<Bvh>)>,
 }
 
 struct NoPrior;
@@ -126,7 +121,7 @@ pub fn make_prior(source: &PriorSource, ctx: &PriorContext) -> Result<Box<dyn Pr
         PriorSource::Idarb => Box::new(IdarbNetwork { ctx: ctx.clone() }),
         PriorSource::LabelsDir(dir) => Box::new(LabelsDir::open(dir)?),
         PriorSource::Oracle => Box::new(Oracle),
-        PriorSource::IdarbSim(level) => Box::new(SimulatedIdarb::new(*level, ctx.seed, ctx.geometry.clone())),
+        PriorSource::IdarbSim(level) => Box::new(SimulatedIdarb::new(*level, ctx.seed)),
     })
 }
 

@@ -209,8 +209,8 @@ pub fn choose(switches: EffectSwitches, mesh: &Mesh, bvh: &Bvh, views: &[GBuffer
             let glossy: Vec<String> = mesh
                 .materials
                 .iter()
-                .filter(|m| m.roughness < SPECULAR_ROUGHNESS_THRESHOLD || m.metallic > 0.0)
-                .map(|m| format!("{} (roughness {:.2}, metallic {:.2})", m.name, m.roughness, m.metallic))
+                .filter(|m| m.roughness.range().0 < SPECULAR_ROUGHNESS_THRESHOLD || m.metallic.range().1 > 0.0)
+                .map(|m| format!("{} (roughness {}, metallic {})", m.name, m.roughness, m.metallic))
                 .collect();
             let on = !glossy.is_empty();
             if on {

@@ -12,7 +12,7 @@ use crate::geometry::primitives::MeshBuilder;
 use crate::geometry::Mesh;
 use crate::image::Image;
 use crate::light::latlong;
-use crate::material::{BaseColor, PartMaterial};
+use crate::material::{BaseColor, PartMaterial, Scalar};
 use crate::render::effects::Effects;
 use crate::render::view::{RenderSettings, ShadingMode};
 use crate::scene::spec::NERFACTOR_TEST_PROBES;
@@ -20,7 +20,7 @@ use crate::scene::synthetic::{write_nerfactor, SyntheticScene};
 use crate::scene::{Camera, Probe};
 
 /// Bump when the scene or its rendering changes, so stale caches are rebuilt.
-pub const VERSION: u32 = 2;
+pub const VERSION: u32 = 3;
 pub const RESOLUTION: usize = 128;
 /// Indirect bounces of the dataset's renders (beyond what a reconstruction simulates by default).
 pub const DATA_BOUNCES: u32 = 5;
@@ -28,7 +28,7 @@ pub const DATA_BOUNCES: u32 = 5;
 pub const FOV_X: f32 = 0.691_111_2;
 
 fn constant(name: &str, rgb: [f32; 3], roughness: f32, metallic: f32) -> PartMaterial {
-    PartMaterial { name: name.into(), base_color: BaseColor::Constant(Vec3::from_array(rgb)), roughness, metallic }
+    PartMaterial::constant(name, Vec3::from_array(rgb), roughness, metallic)
 }
 
 /// Bun texture: golden crust darkening towards the top, with baked streaks (linear RGB).
@@ -55,8 +55,8 @@ pub fn mesh() -> Mesh {
     let bun = b.part(PartMaterial {
         name: "bun".into(),
         base_color: BaseColor::Texture(Arc::new(bun_texture(128))),
-        roughness: 0.8,
-        metallic: 0.0,
+        roughness: Scalar::Constant(0.8),
+        metallic: Scalar::Constant(0.0),
     });
     for x in [-0.19, 0.19] {
         b.ellipsoid(bun, Vec3::new(x, -0.1, -0.02), Vec3::new(0.2, 0.72, 0.14), Quat::IDENTITY, 48, 24);

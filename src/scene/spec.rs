@@ -246,6 +246,14 @@ impl SceneSpec {
             Some("default") => crate::scene::default_scene::ensure_dataset(&self.data_dir)?,
             Some(other) => bail!("scene {:?}: unknown generator {other:?} (known: \"default\")", self.name),
         }
+        if !self.data_dir.is_dir() {
+            bail!(
+                "scene {:?}: data folder {} not found; pass --data DIR with the scene's data (a folder in the NeRFactor or \
+                 NeRF-synthetic layout holding transforms_train.json)",
+                self.name,
+                self.data_dir.display()
+            );
+        }
         Dataset::load(&self.data_dir).with_context(|| format!("loading the data of scene {:?}", self.name))
     }
 
@@ -323,6 +331,13 @@ mod tests {
         assert!(format!("{e:#}").contains("data"), "{e:#}");
         let e = SceneSpec::parse("data = \"d\"\ntest_probes = { strength = -1 }", Path::new("."), "x").unwrap_err();
         assert!(format!("{e:#}").contains("strength"), "{e:#}");
+    }
+
+    #[test]
+    fn a_missing_data_folder_names_it_and_says_to_pass_data() {
+        let spec = SceneSpec::parse("data = \"/nonexistent/ficus_2188\"", Path::new("."), "x").expect("test setup");
+        let msg = format!("{:#}", spec.load_dataset().unwrap_err());
+        assert!(msg.contains("/nonexistent/ficus_2188") && msg.contains("--data"), "{msg}");
     }
 
     #[test]

@@ -31,8 +31,8 @@ pub struct SyntheticScene {
 const CUBE_RES: usize = 64;
 
 /// Render the scene into `dir` in the NeRFactor layout (transforms_*.json, per-view folders with
-/// rgba.png, albedo.png (linear), normal.png, roughness.png, metallic.png, metadata.json, and
-/// rgba_<probe>.png for test views), plus the training probe as `<name>.exr`.
+/// rgba.png, albedo.png (linear), normal.png, roughness.png, metallic.png, depth.exr, metadata.json,
+/// and rgba_<probe>.png for test views), plus the training probe as `<name>.exr`.
 pub fn write_nerfactor(scene: &SyntheticScene, dir: &Path, settings: &RenderSettings) -> Result<()> {
     fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
     let bvh = Bvh::build(&scene.mesh);
@@ -93,7 +93,8 @@ pub fn encode_srgb(img: &Image) -> Image {
 }
 
 /// albedo.png (linear base colour), normal.png ((n+1)/2, world), roughness.png and metallic.png:
-/// per-pixel averages over the covered sub-samples (straight, like the hotdog data), alpha = coverage.
+/// per-pixel averages over the covered sub-samples (straight, like the hotdog data), alpha = coverage;
+/// depth.exr: planar depth along the view axis ("Z"), averaged the same way, 0 on the background.
 fn write_ground_truth_maps(mesh: &Mesh, bvh: &Bvh, cam: &Camera, supersample: usize, dir: &Path) -> Result<()> {
     let s = supersample.max(1);
     let fine = cam.resized(cam.width * s, cam.height * s);
@@ -104,6 +105,7 @@ fn write_ground_truth_maps(mesh: &Mesh, bvh: &Bvh, cam: &Camera, supersample: us
     let mut normal = Image::new(w, h, 4);
     let mut rough = Image::new(w, h, 4);
     let mut metal = Image::new(w, h, 4);
+    let mut depth = Image::new(w, h, 4);
     for (i, (surfel, p)) in gbuf.surfels.iter().zip(&params).enumerate() {
         if let (Some(s), Some(p)) = (surfel, p) {
             let n = s.normal * 0.5 + Vec3::splat(0.5);
@@ -111,6 +113,7 @@ fn write_ground_truth_maps(mesh: &Mesh, bvh: &Bvh, cam: &Camera, supersample: us
             normal.data[4 * i..4 * i + 4].copy_from_slice(&[n.x, n.y, n.z, 1.0]);
             rough.data[4 * i..4 * i + 4].copy_from_slice(&[p.roughness, p.roughness, p.roughness, 1.0]);
             metal.data[4 * i..4 * i + 4].copy_from_slice(&[p.metallic, p.metallic, p.metallic, 1.0]);
+            depth.data[4 * i..4 * i + 4].copy_from_slice(&[s.depth, s.depth, s.depth, 1.0]);
         }
     }
     let resolve = |img: Image| unpremultiply(img.downsample_box(s));
@@ -118,5 +121,6 @@ fn write_ground_truth_maps(mesh: &Mesh, bvh: &Bvh, cam: &Camera, supersample: us
     io::write_png(&dir.join("normal.png"), &resolve(normal))?;
     io::write_png(&dir.join("roughness.png"), &resolve(rough).channel(0))?;
     io::write_png(&dir.join("metallic.png"), &resolve(metal).channel(0))?;
+    io::write_exr_channels(&dir.join("depth.exr"), &resolve(depth).channel(0), &["Z"])?;
     Ok(())
 }
