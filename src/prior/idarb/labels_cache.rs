@@ -80,7 +80,10 @@ pub fn load(dir: &Path, key: &Value) -> Result<Option<Vec<ViewLabels>>> {
     }
     let text = std::fs::read_to_string(&settings_path).with_context(|| format!("reading {}", settings_path.display()))?;
     let settings: Value = serde_json::from_str(&text).with_context(|| format!("parsing {}", settings_path.display()))?;
-    if settings.get("key") != Some(key) {
+    // compare as stored: an f32 in the key (a pose angle) is written in its shortest form and
+    // reads back as another f64 than the in-memory one
+    let key: Value = serde_json::from_str(&key.to_string())?;
+    if settings.get("key") != Some(&key) {
         return Ok(None);
     }
     let n = settings.get("num_views").and_then(Value::as_u64).with_context(|| format!("{}: no num_views", settings_path.display()))? as usize;
@@ -133,7 +136,7 @@ mod tests {
         let dir = std::env::temp_dir().join(format!("idarb_cache_test_{}", std::process::id()));
         let ramp = |c: usize| Image { width: 5, height: 3, channels: c, data: (0..15 * c).map(|i| i as f32 / (15 * c) as f32).collect() };
         let labels = vec![ViewLabels { albedo: ramp(3), normal: ramp(3), metallic: ramp(1), roughness: ramp(1), mask: ramp(1) }];
-        let key = serde_json::json!({"steps": 4});
+        let key = serde_json::json!({"steps": 4, "pose": [1.1565497f32]});
         store(&dir, &key, &[("unet/x".into(), "00".into())], &["r_7".to_string()], &labels)?;
         assert!(dir.join("r_7_albedo.png").is_file() && dir.join("r_7_roughness.png").is_file());
         assert_eq!(names_and_weights(&dir)?, Some((vec!["r_7".to_string()], vec![("unet/x".to_string(), "00".to_string())])));
@@ -142,7 +145,7 @@ mod tests {
             assert!((a - b).abs() <= 0.5 / 65535.0 + 1e-7);
         }
         assert_eq!(back[0].roughness.channels, 1);
-        assert!(load(&dir, &serde_json::json!({"steps": 5}))?.is_none());
+        assert!(load(&dir, &serde_json::json!({"steps": 5, "pose": [1.1565497f32]}))?.is_none());
         assert!(store(&dir, &key, &[], &["a/b".to_string()], &labels).is_err());
         std::fs::remove_dir_all(&dir).ok();
         Ok(())
