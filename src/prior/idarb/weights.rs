@@ -24,7 +24,7 @@ pub const TEXT_EMBEDDINGS_KEY: &str = "text_embeddings";
 /// What the user sees when `--prior idarb` has neither cached labels nor weights.
 pub const NO_WEIGHTS_MESSAGE: &str = "\
 --prior idarb needs either cached labels or the IDArb network weights, and found neither.
-To get the weights (about 5 GB):
+To get the weights (about 4 GB):
   1. download the official IDArb pipeline checkpoint (Hugging Face model `lizb6626/IDArb`,
      the folder with unet/, vae/, text_encoder/, tokenizer/), e.g.
        pip install huggingface_hub && huggingface-cli download lizb6626/IDArb --local-dir idarb-weights
