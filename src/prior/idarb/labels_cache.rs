@@ -56,8 +56,11 @@ pub fn default_names(n: usize) -> Vec<String> {
     (0..n).map(|v| format!("view_{v:04}")).collect()
 }
 
+/// (file, content hash) of each weight file a cache was made with.
+pub type WeightHashes = Vec<(String, String)>;
+
 /// The view names and weight hashes of the cache in `dir`, when there is one.
-pub fn names_and_weights(dir: &Path) -> Result<Option<(Vec<String>, Vec<(String, String)>)>> {
+pub fn names_and_weights(dir: &Path) -> Result<Option<(Vec<String>, WeightHashes)>> {
     let settings_path = dir.join(SETTINGS_FILE);
     if !settings_path.is_file() {
         return Ok(None);
