@@ -1,6 +1,8 @@
 //! The DDIM schedule against the official scheduler's 50-step table and its 1000 ᾱ values
-//! (`../shared/idarb/scheduler_table.json`, read at test time; skipped when absent).
-use reconstruct::prior::idarb::scheduling_ddim::DdimScheduler;
+//! (`../shared/idarb/scheduler_table.json`, read at test time; skipped when absent), and against
+//! diffusers' schedule for many step counts (`tests/fixtures/idarb/ddim_schedules.json`, made by
+//! `tools/idarb/make_schedule_fixture.py`): the step rule exactly, ᾱ within float32 resolution.
+use reconstruct::prior::idarb::scheduling_ddim::{DdimScheduler, ALPHA_AGREEMENT};
 use serde_json::Value;
 use std::path::PathBuf;
 
@@ -38,4 +40,26 @@ fn schedule_matches_official_table() {
         let (ma, map) = s.alphas(k);
         assert!((ma as f64 - a).abs() <= 5e-7 && (map as f64 - ap).abs() <= 5e-7, "step {k}: ({ma}, {map}) vs ({a}, {ap})");
     }
+}
+
+#[test]
+fn schedule_matches_diffusers_for_every_step_count() {
+    let path = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/idarb/ddim_schedules.json");
+    let table: Value = serde_json::from_str(&std::fs::read_to_string(&path).expect("schedule fixture")).expect("json");
+    let mut worst = 0f64;
+    for sched in table["schedules"].as_array().expect("schedules") {
+        let steps = sched["steps"].as_u64().expect("steps") as usize;
+        let s = DdimScheduler::idarb(steps);
+        let ts: Vec<f64> = s.timesteps.iter().map(|&t| t as f64).collect();
+        assert_eq!(ts, floats(sched, "timesteps"), "{steps} steps: timesteps");
+        let prev: Vec<f64> = s.prev_timesteps.iter().map(|&t| t as f64).collect();
+        assert_eq!(prev, floats(sched, "prev_timesteps"), "{steps} steps: prev_timesteps");
+        for (k, (a, ap)) in floats(sched, "alpha_prod_t").iter().zip(floats(sched, "alpha_prod_t_prev")).enumerate() {
+            let (ma, map) = s.alphas(k);
+            let d = (ma as f64 - a).abs().max((map as f64 - ap).abs());
+            assert!(d <= ALPHA_AGREEMENT, "{steps} steps, step {k}: ({ma}, {map}) vs ({a}, {ap})");
+            worst = worst.max(d);
+        }
+    }
+    println!("ᾱ over all step counts: max |Δ| = {worst:.2e} ({:.1} ulp of 1)", worst / f32::EPSILON as f64);
 }

@@ -123,3 +123,22 @@ fn prior_term_gradient_matches_finite_differences() -> anyhow::Result<()> {
     check_gradient(term, &[kd, ks], 1e-6, 1e-2)?;
     Ok(())
 }
+
+/// The IDArb label cache (`--prior idarb`) is itself a `labels:DIR` folder: labels stored under a
+/// view's name read back through `LabelsDir` (16-bit files, so within 8-bit resolution here).
+#[test]
+fn idarb_label_cache_reads_back_as_a_labels_folder() -> Result<()> {
+    let ds = dataset()?;
+    let view = &ds.train[0];
+    let truth = view_labels(view)?;
+    let dir = temp("idarb-cache");
+    let key = serde_json::json!({"test": 1});
+    reconstruct::prior::idarb::labels_cache::store(&dir, &key, &[], std::slice::from_ref(&view.name), std::slice::from_ref(&truth))?;
+    let got = load(&dir, &ds)?;
+    close(&got.albedo, &truth.albedo, "albedo");
+    close(&got.normal, &truth.normal, "normal");
+    close(&got.roughness, &truth.roughness, "roughness");
+    close(&got.metallic, &truth.metallic, "metallic");
+    std::fs::remove_dir_all(&dir).ok();
+    Ok(())
+}

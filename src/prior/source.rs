@@ -10,7 +10,7 @@ use anyhow::{bail, Context, Result};
 use crate::image::Image;
 use crate::scene::dataset::Dataset;
 
-use super::idarb::labels::{labels_for_views, IdarbOptions, ViewLabels};
+use super::idarb::labels::{labels_for_named_views, IdarbOptions, ViewLabels};
 use super::idarb::preprocess::pose_from_camera_origin;
 use super::idarb_sim::SimulatedIdarb;
 use super::labels_dir::LabelsDir;
@@ -110,7 +110,9 @@ impl Prior for IdarbNetwork {
             .map(|&i| dataset.train[i].load_rgba().map(|img| img.linear_to_srgb()))
             .collect::<Result<_>>()?;
         let poses: Vec<[f32; 4]> = views.iter().map(|&i| pose_from_camera_origin(dataset.train[i].camera.origin())).collect();
-        let labels = labels_for_views(&images, Some(&poses), &self.ctx.idarb, self.ctx.idarb_weights.as_deref(), &self.ctx.cache_dir.join("idarb"))?;
+        // named after the views, so the cache folder is also a `--prior labels:DIR` folder
+        let names: Vec<String> = views.iter().map(|&i| dataset.train[i].name.clone()).collect();
+        let labels = labels_for_named_views(&images, &names, Some(&poses), &self.ctx.idarb, self.ctx.idarb_weights.as_deref(), &self.ctx.cache_dir.join("idarb"))?;
         Ok(labels.into_iter().map(Some).collect())
     }
 }

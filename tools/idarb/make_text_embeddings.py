@@ -1,9 +1,11 @@
 #!/usr/bin/env python3
-"""Make the prompt embeddings the Rust IDArb port conditions on, once, from the official weights.
+"""Cross-check for the Rust text tower: the prompt embeddings as PyTorch computes them.
 
 IDArb conditions each domain on the CLIP text encoder's `last_hidden_state` of a fixed prompt
-('albedo', 'normal', 'metallic and roughness'); these never change, so instead of porting the
-OpenCLIP-H text tower we compute the three [77, 1024] embeddings here and store them.
+('albedo', 'normal', 'metallic and roughness'). The Rust tool computes these itself from the
+folder's tokenizer/ and text_encoder/ (src/prior/idarb/text_embeddings.rs) and does not need this
+script; with its output in the folder, `IDARB_WEIGHTS=DIR cargo test --release --test idarb_text`
+compares the two.
 
 Usage: python3 tools/idarb/make_text_embeddings.py WEIGHTS_DIR
   WEIGHTS_DIR is the official pipeline checkpoint folder (with text_encoder/ and tokenizer/).

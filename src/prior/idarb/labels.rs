@@ -64,12 +64,30 @@ pub struct ViewLabels {
 /// Labels for `views` (RGBA, encoded as `opts.input_encoding`). `poses` are CaPE angles per view
 /// (see [`super::preprocess::pose_from_camera_origin`]); None uses the official no-camera pose.
 /// Uses `cache_dir` when it holds labels made with the same settings and inputs; otherwise runs
-/// the network with the weights in `weights_dir` (or `$IDARB_WEIGHTS`) and fills the cache.
+/// the network with the weights in `weights_dir` (or `$IDARB_WEIGHTS`) and fills the cache, its
+/// files named `view_0000_albedo.png`, … ([`labels_for_named_views`] names them after the views).
 pub fn labels_for_views(views: &[Image], poses: Option<&[[f32; 4]]>, opts: &IdarbOptions, weights_dir: Option<&Path>, cache_dir: &Path) -> Result<Vec<ViewLabels>> {
+    labels_for_named_views(views, &labels_cache::default_names(views.len()), poses, opts, weights_dir, cache_dir)
+}
+
+/// [`labels_for_views`] with the cache's files named after the views (`names[i]` for view i, e.g.
+/// the dataset's `train_003` or image stem `r_3`): `<name>_albedo.png`, `_normal`, `_metallic`,
+/// `_roughness` (and `_mask`), the layout `--prior labels:DIR` reads, so `cache_dir` can be
+/// passed back as a labels folder.
+pub fn labels_for_named_views(views: &[Image], names: &[String], poses: Option<&[[f32; 4]]>, opts: &IdarbOptions, weights_dir: Option<&Path>, cache_dir: &Path) -> Result<Vec<ViewLabels>> {
+    if names.len() != views.len() {
+        bail!("IDArb: {} names for {} views", names.len(), views.len());
+    }
     let poses = resolve_poses(views.len(), poses)?;
     let key = cache_key(views, &poses, opts);
     if let Some(labels) = labels_cache::load(cache_dir, &key)? {
         if labels.len() == views.len() {
+            // the same inputs under other names: write the files under these names too
+            if let Some((stored, weights)) = labels_cache::names_and_weights(cache_dir)? {
+                if stored != names {
+                    labels_cache::store(cache_dir, &key, &weights, names, &labels)?;
+                }
+            }
             return Ok(labels);
         }
     }
@@ -78,7 +96,7 @@ pub fn labels_for_views(views: &[Image], poses: Option<&[[f32; 4]]>, opts: &Idar
     let hashes = files.hashes()?;
     let pipeline = files.load(&Device::Cpu)?;
     let labels = run_network(&pipeline, views, &poses, opts)?;
-    labels_cache::store(cache_dir, &key, &hashes, &labels)?;
+    labels_cache::store(cache_dir, &key, &hashes, names, &labels)?;
     Ok(labels)
 }
 

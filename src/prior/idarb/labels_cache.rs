@@ -1,5 +1,7 @@
 //! On-disk label cache: one 16-bit PNG per map and view plus `settings.json` (options, input
 //! hashes, weight hashes). A cache is reused only when its key (options + inputs) matches.
+//! The maps are named `<view>_<map>.png` (albedo, normal, metallic, roughness, plus the mask), the
+//! per-map layout `--prior labels:DIR` reads, so a cache folder is also a labels folder.
 use super::labels::ViewLabels;
 use crate::image::Image;
 use anyhow::{bail, Context, Result};
@@ -40,6 +42,39 @@ fn load_png(path: &Path, channels: usize) -> Result<Image> {
     Ok(Image { width: w, height: h, channels, data })
 }
 
+/// The view names a cache's files use: its `views` list, else (caches written before names were
+/// stored) `view_0000`, `view_0001`, ….
+fn stored_names(settings: &Value, n: usize) -> Vec<String> {
+    match settings.get("views").and_then(Value::as_array) {
+        Some(v) if v.len() == n && v.iter().all(Value::is_string) => v.iter().filter_map(|s| s.as_str().map(str::to_string)).collect(),
+        _ => default_names(n),
+    }
+}
+
+/// Names of views that have none: `view_0000`, `view_0001`, ….
+pub fn default_names(n: usize) -> Vec<String> {
+    (0..n).map(|v| format!("view_{v:04}")).collect()
+}
+
+/// (file, content hash) of each weight file a cache was made with.
+pub type WeightHashes = Vec<(String, String)>;
+
+/// The view names and weight hashes of the cache in `dir`, when there is one.
+pub fn names_and_weights(dir: &Path) -> Result<Option<(Vec<String>, WeightHashes)>> {
+    let settings_path = dir.join(SETTINGS_FILE);
+    if !settings_path.is_file() {
+        return Ok(None);
+    }
+    let text = std::fs::read_to_string(&settings_path).with_context(|| format!("reading {}", settings_path.display()))?;
+    let settings: Value = serde_json::from_str(&text).with_context(|| format!("parsing {}", settings_path.display()))?;
+    let n = settings.get("num_views").and_then(Value::as_u64).unwrap_or(0) as usize;
+    let weights = match settings.get("weights_fnv1a64").and_then(Value::as_object) {
+        Some(m) => m.iter().filter_map(|(f, h)| h.as_str().map(|h| (f.clone(), h.to_string()))).collect(),
+        None => Vec::new(),
+    };
+    Ok(Some((stored_names(&settings, n), weights)))
+}
+
 /// Cached labels for `key`, or None when absent or made with other settings.
 pub fn load(dir: &Path, key: &Value) -> Result<Option<Vec<ViewLabels>>> {
     let settings_path = dir.join(SETTINGS_FILE);
@@ -48,29 +83,46 @@ pub fn load(dir: &Path, key: &Value) -> Result<Option<Vec<ViewLabels>>> {
     }
     let text = std::fs::read_to_string(&settings_path).with_context(|| format!("reading {}", settings_path.display()))?;
     let settings: Value = serde_json::from_str(&text).with_context(|| format!("parsing {}", settings_path.display()))?;
-    if settings.get("key") != Some(key) {
+    // compare as stored: an f32 in the key (a pose angle) is written in its shortest form and
+    // reads back as another f64 than the in-memory one
+    let key: Value = serde_json::from_str(&key.to_string())?;
+    if settings.get("key") != Some(&key) {
         return Ok(None);
     }
     let n = settings.get("num_views").and_then(Value::as_u64).with_context(|| format!("{}: no num_views", settings_path.display()))? as usize;
     let mut out = Vec::with_capacity(n);
-    for v in 0..n {
-        let get = |name: &str, c: usize| load_png(&dir.join(format!("view_{v:04}_{name}.png")), c);
+    for view in stored_names(&settings, n) {
+        let get = |name: &str, c: usize| load_png(&dir.join(format!("{view}_{name}.png")), c);
         out.push(ViewLabels { albedo: get("albedo", 3)?, normal: get("normal", 3)?, metallic: get("metallic", 1)?, roughness: get("roughness", 1)?, mask: get("mask", 1)? });
     }
     Ok(Some(out))
 }
 
-/// Write labels and their settings (`weights` = file hashes for provenance).
-pub fn store(dir: &Path, key: &Value, weights: &[(String, String)], labels: &[ViewLabels]) -> Result<()> {
+/// Write labels and their settings (`weights` = file hashes for provenance) as `<view>_<map>.png`
+/// for the view names `names` (one per label; unique, usable as file names).
+pub fn store(dir: &Path, key: &Value, weights: &[(String, String)], names: &[String], labels: &[ViewLabels]) -> Result<()> {
+    if names.len() != labels.len() {
+        bail!("label cache: {} names for {} views", names.len(), labels.len());
+    }
+    let mut unique = names.to_vec();
+    unique.sort();
+    unique.dedup();
+    if let Some(bad) = names.iter().find(|n| n.is_empty() || n.contains(['/', '\\']) || n.as_str() == "." || n.as_str() == "..") {
+        bail!("label cache: view name `{bad}` cannot name a file");
+    }
+    if unique.len() != names.len() {
+        bail!("label cache: view names repeat ({names:?})");
+    }
     std::fs::create_dir_all(dir).with_context(|| format!("creating label cache {}", dir.display()))?;
-    for (v, l) in labels.iter().enumerate() {
+    for (view, l) in names.iter().zip(labels) {
         for (name, _) in MAPS {
-            save_png16(map_of(l, name), &dir.join(format!("view_{v:04}_{name}.png")))?;
+            save_png16(map_of(l, name), &dir.join(format!("{view}_{name}.png")))?;
         }
     }
     let settings = serde_json::json!({
-        "what": "IDArb pseudo-labels: albedo (sRGB-encoded), normal (camera space, (n+1)/2), metallic, roughness, mask; 16-bit PNG",
+        "what": "IDArb pseudo-labels: albedo (sRGB-encoded), normal (camera space, (n+1)/2), metallic, roughness, mask; 16-bit PNG, <view>_<map>.png",
         "num_views": labels.len(),
+        "views": names,
         "key": key,
         "weights_fnv1a64": weights.iter().map(|(f, h)| (f.clone(), Value::String(h.clone()))).collect::<serde_json::Map<_, _>>(),
     });
@@ -87,14 +139,17 @@ mod tests {
         let dir = std::env::temp_dir().join(format!("idarb_cache_test_{}", std::process::id()));
         let ramp = |c: usize| Image { width: 5, height: 3, channels: c, data: (0..15 * c).map(|i| i as f32 / (15 * c) as f32).collect() };
         let labels = vec![ViewLabels { albedo: ramp(3), normal: ramp(3), metallic: ramp(1), roughness: ramp(1), mask: ramp(1) }];
-        let key = serde_json::json!({"steps": 4});
-        store(&dir, &key, &[("unet/x".into(), "00".into())], &labels)?;
+        let key = serde_json::json!({"steps": 4, "pose": [1.1565497f32]});
+        store(&dir, &key, &[("unet/x".into(), "00".into())], &["r_7".to_string()], &labels)?;
+        assert!(dir.join("r_7_albedo.png").is_file() && dir.join("r_7_roughness.png").is_file());
+        assert_eq!(names_and_weights(&dir)?, Some((vec!["r_7".to_string()], vec![("unet/x".to_string(), "00".to_string())])));
         let back = load(&dir, &key)?.expect("cache hit");
         for (a, b) in back[0].albedo.data.iter().zip(&labels[0].albedo.data) {
             assert!((a - b).abs() <= 0.5 / 65535.0 + 1e-7);
         }
         assert_eq!(back[0].roughness.channels, 1);
-        assert!(load(&dir, &serde_json::json!({"steps": 5}))?.is_none());
+        assert!(load(&dir, &serde_json::json!({"steps": 5, "pose": [1.1565497f32]}))?.is_none());
+        assert!(store(&dir, &key, &[], &["a/b".to_string()], &labels).is_err());
         std::fs::remove_dir_all(&dir).ok();
         Ok(())
     }

@@ -4,7 +4,9 @@
 //! Entry point: [`labels_for_views`]. The parts: [`unet_dr2d_condition`] (UNet-DR2D) built from
 //! [`unet_dr2d_blocks`], [`transformer_dr2d`] (cross-domain / cross-view attention with [`cape`]),
 //! [`resnet`], [`attention`]; [`autoencoder_kl`] (VAE); [`scheduling_ddim`]; [`preprocess`];
-//! [`pipeline_idarbdiffusion`] (sampling loop); [`weights`]; [`labels`] and [`labels_cache`].
+//! [`pipeline_idarbdiffusion`] (sampling loop); the prompt embeddings from the folder's own
+//! [`tokenization_clip`] and [`modeling_clip`] text tower ([`text_embeddings`]); [`weights`];
+//! [`labels`] and [`labels_cache`].
 
 pub mod attention;
 pub mod autoencoder_kl;
@@ -18,12 +20,15 @@ pub mod labels;
 pub mod labels_cache;
 pub mod linear;
 pub mod matmul;
+pub mod modeling_clip;
 pub mod pipeline_idarbdiffusion;
 pub mod preprocess;
 pub mod resnet;
 pub mod scheduling_ddim;
 pub mod scratch;
 pub mod softmax;
+pub mod text_embeddings;
+pub mod tokenization_clip;
 pub mod transformer_dr2d;
 pub mod unet_dr2d_blocks;
 pub mod unet_dr2d_condition;

@@ -3,6 +3,13 @@
 //! trailing timestep spacing, `set_alpha_to_one` (ᾱ = 1 before the first training step).
 use candle_core::{Result, Tensor};
 
+/// How closely two correct float32 implementations of this schedule agree on ᾱ (what the parity
+/// tests allow): four float32 roundings at the scale of 1. ᾱ is made from O(1) quantities (1 − β,
+/// √ᾱ, the zero-SNR rescale), so its rounding error is absolute, about one ulp of 1 per operation,
+/// and implementations that order the operations differently land a few ulps apart; one ulp of 1
+/// (1.19e-7) is already twice the spacing of float32 just below 1.
+pub const ALPHA_AGREEMENT: f64 = 4.0 * f32::EPSILON as f64;
+
 #[derive(Debug, Clone)]
 pub struct DdimScheduler {
     /// ᾱ_t for t = 0…999 (float32, as diffusers computes them; ᾱ_999 is exactly 0).
@@ -50,9 +57,9 @@ impl DdimScheduler {
         let alphas: Vec<f32> = betas.iter().map(|b| 1.0 - b).collect();
         let alphas_cumprod = cumprod(&alphas);
         let s = num_inference_steps.clamp(1, train);
-        // trailing: round(arange(T, 0, −T/S)) − 1
+        // trailing: round(arange(T, 0, −T/S)) − 1, numpy's round (halves to even: 812.5 → 812)
         let ratio = train as f64 / s as f64;
-        let timesteps: Vec<usize> = (0..s).map(|i| ((train as f64 - i as f64 * ratio).round() as usize).saturating_sub(1)).collect();
+        let timesteps: Vec<usize> = (0..s).map(|i| ((train as f64 - i as f64 * ratio).round_ties_even() as usize).saturating_sub(1)).collect();
         let prev_timesteps = timesteps.iter().map(|&t| t as i64 - (train / s) as i64).collect();
         Self { alphas_cumprod, num_train_timesteps: train, timesteps, prev_timesteps }
     }
@@ -107,6 +114,9 @@ mod tests {
         let s7 = DdimScheduler::idarb(7);
         assert_eq!(s7.timesteps, vec![999, 856, 713, 570, 428, 285, 142]);
         assert_eq!(s7.prev_timesteps, vec![857, 714, 571, 428, 286, 143, 0]);
+        // S = 16: arange steps of 62.5 hit halves, which numpy rounds to even (812.5 → 812 → 811)
+        let s16 = DdimScheduler::idarb(16);
+        assert_eq!(&s16.timesteps[..4], &[999, 937, 874, 811]);
     }
 
     #[test]
