@@ -2,7 +2,9 @@
 //! parses arguments and prints.
 
 pub mod ablation;
+pub mod label;
 pub mod reconstruct;
 pub mod report_markdown;
 pub mod render;
+pub mod sweep;
 pub mod tradeoff;
