@@ -10,8 +10,8 @@ use reconstruct::prior::source::PriorSource;
 use reconstruct::jobs::reconstruct::{run as run_job, GeometrySource, ReconstructOptions};
 use reconstruct::jobs::render::{run, RenderOptions};
 use reconstruct::jobs::label::{self, LabelOptions, ViewSelection};
-use reconstruct::jobs::sweep::{gather, manifest, plan, task};
-use reconstruct::jobs::tradeoff;
+use reconstruct::jobs::sweep::plan::{self as sweep_plan, PlanArgs};
+use reconstruct::jobs::sweep::{gather, manifest, task};
 use reconstruct::render::view::ShadingMode;
 
 #[global_allocator]
@@ -158,6 +158,8 @@ enum Command {
         /// Output folder (default: runs/ablation-<scene>).
         #[arg(long)]
         out: Option<PathBuf>,
+        #[command(flatten)]
+        plan: PlanArgs,
     },
     /// Sweeps as manifests of independent tasks for Slurm job arrays, GNU parallel or Kubernetes
     /// Indexed Jobs: plan them, run one, gather the tables (docs/scale.md).
@@ -190,6 +192,8 @@ enum Command {
         /// Seed of simulated labels (the run's --seed).
         #[arg(long, default_value_t = 0)]
         seed: u64,
+        #[command(flatten)]
+        plan: PlanArgs,
     },
     /// Render a scene's ground truth under probes and compare with the dataset's images.
     Render {
@@ -221,23 +225,9 @@ enum Command {
     },
 }
 
-#[derive(clap::Args)]
-struct ManifestOut {
-    /// The manifest to write (JSON lines; task N is line N, from 0).
-    #[arg(long, default_value = "sweep.jsonl")]
-    manifest: PathBuf,
-    /// Add the lines to an existing manifest instead of replacing it.
-    #[arg(long)]
-    append: bool,
-}
-
+/// Run a sweep: plan, run one task, gather.
 #[derive(Subcommand)]
 enum SweepAction {
-    /// Write the manifest of a sweep (one line per run).
-    Plan {
-        #[command(subcommand)]
-        study: PlanStudy,
-    },
     /// Run one task of a manifest: --task N, else $SLURM_ARRAY_TASK_ID, else $JOB_COMPLETION_INDEX.
     Run {
         #[arg(long, default_value = "sweep.jsonl")]
@@ -255,109 +245,8 @@ enum SweepAction {
     },
 }
 
-#[derive(Subcommand)]
-enum PlanStudy {
-    /// The prior ablation (as `reconstruct ablation`), one study per scene in RUNS/ablation-<scene>.
-    Ablation {
-        #[arg(long, value_delimiter = ',', default_value = "default")]
-        scenes: Vec<String>,
-        /// Label sources of the table.
-        #[arg(long, value_delimiter = ',', default_value = "none,idarb-sim,oracle")]
-        sources: Vec<String>,
-        #[arg(long, default_value_t = 300)]
-        iterations: usize,
-        #[arg(long, value_enum, default_value = "auto")]
-        mode: TrainMode,
-        #[arg(long, default_value_t = 4)]
-        spp: u32,
-        /// idarb-sim levels of a prior-quality sweep (e.g. 0,0.5,1,1.5,2).
-        #[arg(long, value_delimiter = ',')]
-        sweep: Vec<f64>,
-        #[arg(long, default_value_t = 8)]
-        eval_spp: u32,
-        /// Relight at most this many test views (default: all).
-        #[arg(long)]
-        eval_test_views: Option<usize>,
-        /// Training views the prior labels (default: all).
-        #[arg(long)]
-        labelled_views: Option<usize>,
-        #[arg(long, default_value = "runs")]
-        runs: PathBuf,
-        #[command(flatten)]
-        target: ManifestOut,
-    },
-    /// The time/accuracy trade-off (as `--example tradeoff`) in RUNS/tradeoff-<scene>.
-    Tradeoff {
-        #[arg(long, default_value = "default")]
-        scene: String,
-        /// Base iteration count (the sweep also runs a third and three times as many).
-        #[arg(long, default_value_t = 200)]
-        iterations: usize,
-        /// Test views relit per point.
-        #[arg(long, default_value_t = 2)]
-        test_views: usize,
-        #[arg(long, default_value_t = 8)]
-        eval_spp: u32,
-        #[arg(long, default_value = "runs")]
-        runs: PathBuf,
-        #[command(flatten)]
-        target: ManifestOut,
-    },
-    /// Labelling jobs (`reconstruct label`), one per scene, into LABELS/<scene>.
-    Labels {
-        #[arg(long, value_delimiter = ',', default_value = "default")]
-        scenes: Vec<String>,
-        #[arg(long, default_value = "idarb")]
-        source: String,
-        #[arg(long, default_value_t = 100)]
-        views: usize,
-        #[arg(long, default_value = "labels")]
-        labels: PathBuf,
-        #[arg(long)]
-        idarb_weights: Option<PathBuf>,
-        #[command(flatten)]
-        target: ManifestOut,
-    },
-}
-
 fn sweep(action: SweepAction) -> Result<()> {
     match action {
-        SweepAction::Plan { study } => {
-            let (lines, target) = match study {
-                PlanStudy::Ablation { scenes, sources, iterations, mode, spp, sweep, eval_spp, eval_test_views, labelled_views, runs, target } => {
-                    let sources = sources.iter().map(|s| s.parse()).collect::<Result<Vec<PriorSource>>>()?;
-                    let fixed_mode = mode.fixed();
-                    let fit = FitConfig { mode: fixed_mode.unwrap_or(ShadingMode::SplitSum), iterations, spp, ..FitConfig::default() };
-                    let mut lines = Vec::new();
-                    for scene in &scenes {
-                        let mut base = ReconstructOptions::new(scene, fit.clone(), eval_spp, runs.join(format!("ablation-{scene}")));
-                        base.auto_mode = fixed_mode.is_none();
-                        base.eval_test_views = eval_test_views;
-                        base.labelled_views = labelled_views.unwrap_or(usize::MAX);
-                        lines.extend(plan::ablation(&ablation::AblationOptions { base, sources: sources.clone(), sweep: sweep.clone() }));
-                    }
-                    (lines, target)
-                }
-                PlanStudy::Tradeoff { scene, iterations, test_views, eval_spp, runs, target } => {
-                    let mut base = ReconstructOptions::new(&scene, FitConfig::default(), eval_spp, runs.join(format!("tradeoff-{scene}")));
-                    base.eval_test_views = Some(test_views);
-                    (plan::tradeoff(&base, &tradeoff::default_points(iterations))?, target)
-                }
-                PlanStudy::Labels { scenes, source, views, labels, idarb_weights, target } => {
-                    let jobs: Vec<LabelOptions> = scenes
-                        .iter()
-                        .map(|scene| LabelOptions { scene: scene.clone(), data: None, source: source.clone(), views: ViewSelection::Count(views), out: labels.join(scene), idarb_weights: idarb_weights.clone(), seed: 0 })
-                        .collect();
-                    (plan::labels(&jobs), target)
-                }
-            };
-            plan::check_scenes(&lines)?;
-            manifest::write(&target.manifest, &lines, target.append)?;
-            let total = manifest::read(&target.manifest)?.len();
-            println!("wrote {} tasks to {} ({total} in all)", lines.len(), target.manifest.display());
-            println!("Slurm:        mkdir -p logs && sbatch --array=0-{} tools/slurm/sweep.sbatch {}", total - 1, target.manifest.display());
-            println!("one machine:  parallel -j 2 --joblog sweep.joblog target/release/reconstruct sweep run --manifest {} --task {{}} ::: $(seq 0 {})", target.manifest.display(), total - 1);
-        }
         SweepAction::Run { manifest: path, task: explicit, force } => {
             let lines = manifest::read(&path)?;
             let n = manifest::task_index(explicit, |k| std::env::var(k).ok(), lines.len())?;
@@ -418,20 +307,30 @@ fn main() -> Result<()> {
     let cli = Cli::parse();
     let Some(command) = cli.command else { return reconstruct(cli.reconstruct) };
     match command {
-        Command::Ablation { scene, iterations, mode, spp, sweep, eval_spp, out } => {
+        Command::Ablation { scene, iterations, mode, spp, sweep, eval_spp, out, plan } => {
             let out = out.unwrap_or_else(|| ablation::default_out(&scene));
             let fixed_mode = mode.fixed();
             let fit = FitConfig { mode: fixed_mode.unwrap_or(ShadingMode::SplitSum), iterations, spp, ..FitConfig::default() };
             let base = ReconstructOptions { auto_mode: fixed_mode.is_none(), ..ReconstructOptions::new(&scene, fit, eval_spp, out.clone()) };
             let sources = vec![PriorSource::None, PriorSource::IdarbSim(1.0), PriorSource::Oracle];
-            let report = ablation::run(&ablation::AblationOptions { base, sources, sweep })?;
+            let opts = ablation::AblationOptions { base, sources, sweep };
+            if let Some(path) = plan.plan {
+                println!("{}", sweep_plan::write_plan(&path, &sweep_plan::ablation(&opts), plan.append)?);
+                return Ok(());
+            }
+            let report = ablation::run(&opts)?;
             println!("{}", report.markdown());
             println!("wrote {}", out.join("ablation.md").display());
         }
         Command::Sweep { action } => sweep(action)?,
-        Command::Label { scene, data, source, views, names, out, idarb_weights, seed } => {
+        Command::Label { scene, data, source, views, names, out, idarb_weights, seed, plan } => {
             let views = if names.is_empty() { ViewSelection::Count(views) } else { ViewSelection::Names(names) };
-            let report = label::run(&LabelOptions { scene, data, source, views, out: out.clone(), idarb_weights, seed })?;
+            let opts = LabelOptions { scene, data, source, views, out: out.clone(), idarb_weights, seed };
+            if let Some(path) = plan.plan {
+                println!("{}", sweep_plan::write_plan(&path, &sweep_plan::labels(&[opts]), plan.append)?);
+                return Ok(());
+            }
+            let report = label::run(&opts)?;
             println!("labelled {} views of {} with {} in {:.0} s; use --prior labels:{}", report.views.len(), report.scene, report.source, report.seconds, out.display());
         }
         Command::Render { scene, data, views, probes, mode, spp, supersample, seed, out } => {

@@ -1,8 +1,10 @@
 //! Planning a sweep: the ablation, the trade-off and labelling split into manifest lines, one per
 //! run, with the same run folders and settings the one-process jobs use, so a gathered sweep and
-//! a serial job give the same table.
+//! a serial job give the same table. Each job takes `--plan FILE` ([`PlanArgs`]) to write its
+//! lines instead of running them.
 
 use std::collections::BTreeSet;
+use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result};
 
@@ -12,7 +14,19 @@ use crate::jobs::reconstruct::ReconstructOptions;
 use crate::jobs::tradeoff::{point_options, TradeoffPoint};
 use crate::scene::SceneSpec;
 
-use super::manifest::{Job, RunSpec, Study, SweepLine};
+use super::manifest::{self, Job, RunSpec, Study, SweepLine};
+
+/// The `--plan` options every sweepable job shares.
+#[derive(clap::Args, Clone, Debug, Default)]
+pub struct PlanArgs {
+    /// Write the runs to this manifest (JSON lines) instead of running them; run them with
+    /// `reconstruct sweep run` on Slurm, GNU parallel or Kubernetes (docs/scale.md).
+    #[arg(long)]
+    pub plan: Option<PathBuf>,
+    /// Add the runs to the manifest instead of replacing it.
+    #[arg(long, requires = "plan")]
+    pub append: bool,
+}
 
 /// One line per run of the ablation `opts` (its sources, then its sweep levels), in table order.
 pub fn ablation(opts: &AblationOptions) -> Vec<SweepLine> {
@@ -63,4 +77,20 @@ pub fn check_scenes(lines: &[SweepLine]) -> Result<()> {
         }
     }
     Ok(())
+}
+
+/// Checks the scenes, writes `lines` to the manifest at `path` (after its lines when `append`),
+/// and returns what was written with the commands that run it.
+pub fn write_plan(path: &Path, lines: &[SweepLine], append: bool) -> Result<String> {
+    check_scenes(lines)?;
+    manifest::write(path, lines, append)?;
+    let total = manifest::read(path)?.len();
+    let (m, last) = (path.display(), total - 1);
+    Ok(format!(
+        "wrote {} tasks to {m} ({total} in all); run them with\n  \
+         Slurm:         mkdir -p logs && sbatch --array=0-{last} tools/slurm/sweep.sbatch {m}\n  \
+         GNU parallel:  RAYON_NUM_THREADS=1 parallel -j \"$(nproc)\" --joblog sweep.joblog target/release/reconstruct sweep run --manifest {m} --task {{}} ::: $(seq 0 {last})\n  \
+         then:          target/release/reconstruct sweep gather --manifest {m}",
+        lines.len()
+    ))
 }
