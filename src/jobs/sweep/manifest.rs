@@ -41,7 +41,7 @@ pub enum Study {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(tag = "job", rename_all = "kebab-case")]
 pub enum Job {
-    Reconstruct(RunSpec),
+    Reconstruct(Box<RunSpec>),
     Label(LabelOptions),
 }
 

@@ -36,7 +36,7 @@ pub fn ablation(opts: &AblationOptions) -> Vec<SweepLine> {
         .map(|source| {
             let mut o = opts.base.clone();
             o.out = run_folder(&opts.base.out, &source);
-            SweepLine { study: study.clone(), name: source.tag(), job: Job::Reconstruct(RunSpec::new(&o, &source, 1)) }
+            SweepLine { study: study.clone(), name: source.tag(), job: Job::Reconstruct(Box::new(RunSpec::new(&o, &source, 1))) }
         })
         .collect()
 }
@@ -49,7 +49,7 @@ pub fn tradeoff(base: &ReconstructOptions, points: &[TradeoffPoint]) -> Result<V
         .map(|(k, pt)| {
             let (o, source) = point_options(base, k, pt).with_context(|| format!("trade-off point {:?}", pt.name))?;
             let study = Study::Tradeoff { out: base.out.clone(), point: pt.clone() };
-            Ok(SweepLine { study, name: pt.name.clone(), job: Job::Reconstruct(RunSpec::new(&o, &source, pt.downscale)) })
+            Ok(SweepLine { study, name: pt.name.clone(), job: Job::Reconstruct(Box::new(RunSpec::new(&o, &source, pt.downscale))) })
         })
         .collect()
 }
