@@ -90,10 +90,10 @@ pids+=($!)
 slurmd -D -f "$SLURM_CONF" 2> "$tmp/slurmd.err" &
 pids+=($!)
 for _ in $(seq 100); do
-    sinfo -h -o %T 2>/dev/null | grep -qE '^(idle|mixed)' && break
+    sinfo -h -o %T 2>/dev/null | grep -qxE '(idle|mixed)' && break
     sleep 0.2
 done
-sinfo -h -o %T | grep -qE '^(idle|mixed)' || { echo "the Slurm node did not come up: $(sinfo 2>&1)" >&2; exit 1; }
+sinfo -h -o %T | grep -qxE '(idle|mixed)' || { echo "the Slurm node did not come up: $(sinfo 2>&1)" >&2; exit 1; }
 
 # The array: one task per manifest line, 1 CPU and 1 GB each (short runs), logs per task.
 export RECONSTRUCT="$bin"

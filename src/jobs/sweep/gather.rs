@@ -227,4 +227,29 @@ mod tests {
         std::fs::remove_dir_all(&dir).ok();
         Ok(())
     }
+
+    #[test]
+    fn trade_off_points_gather_into_one_study() -> Result<()> {
+        let dir = temp("tradeoff");
+        let base = ReconstructOptions::new("default", FitConfig::default(), 2, dir.join("tradeoff"));
+        let points = crate::jobs::tradeoff::default_points(30);
+        let lines = plan::tradeoff(&base, &points[..3])?;
+        let Job::Reconstruct(spec) = &lines[2].job else { panic!("a reconstruct line") };
+        assert_eq!((spec.out.clone(), spec.fit.spp, spec.fit.iterations), (dir.join("tradeoff/02"), points[2].spp, 30));
+        let Job::Reconstruct(spec) = &lines[1].job else { panic!("a reconstruct line") };
+        assert_eq!(spec.downscale, 2, "{:?} trains at half resolution", points[1].name);
+        finish_run(&lines[0], &Evaluation { relight_psnr_scaled: Some(21.0), ..Evaluation::default() });
+        finish_run(&lines[2], &Evaluation { relight_psnr_scaled: Some(22.0), ..Evaluation::default() });
+        let g = gather(&lines)?;
+        assert_eq!(g.tradeoffs.len(), 1, "one study for the three points");
+        let names: Vec<&str> = g.tradeoffs[0].1.iter().map(|r| r.point.name.as_str()).collect();
+        assert_eq!(names, [points[0].name.as_str(), points[2].name.as_str()]);
+        assert_eq!(g.tradeoffs[0].1[1].optimise_seconds, 2.5);
+        assert_eq!(g.problems.iter().map(|p| p.task).collect::<Vec<_>>(), [1]);
+        let csv = std::fs::read_to_string(dir.join("tradeoff/tradeoff.csv"))?;
+        assert_eq!(csv.lines().count(), 3, "{csv}");
+        assert!(std::fs::read_to_string(dir.join("tradeoff/tradeoff.md"))?.contains("task 1 `split-sum 128²`"));
+        std::fs::remove_dir_all(&dir).ok();
+        Ok(())
+    }
 }
