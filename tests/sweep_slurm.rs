@@ -5,6 +5,7 @@
 //! (wall times aside). Without Slurm installed the test is skipped with a message, except in CI
 //! (`CI=true`), where it fails: `.ci/run` installs slurm-wlm and munge.
 
+use std::io::Write;
 use std::path::PathBuf;
 use std::process::Command;
 
@@ -29,9 +30,10 @@ fn without_times(markdown: &str) -> String {
 fn slurm_array_gathers_to_the_serial_ablation_table() -> Result<()> {
     let missing: Vec<&str> = ["sbatch", "squeue", "scontrol", "slurmctld", "slurmd", "munged"].into_iter().filter(|c| !installed(c)).collect();
     if !missing.is_empty() {
-        let msg = format!("Slurm test skipped: {} not installed (apt-get install slurm-wlm munge; .ci/run does)", missing.join(", "));
-        assert!(std::env::var("CI").as_deref() != Ok("true"), "{msg}");
-        eprintln!("{msg}");
+        let msg = format!("{} not installed (apt-get install slurm-wlm munge; .ci/run does)", missing.join(", "));
+        assert!(std::env::var("CI").as_deref() != Ok("true"), "the Slurm test cannot run in CI: {msg}");
+        // Straight to stderr, past the test harness's capture, so the skip is seen.
+        writeln!(std::io::stderr(), "Slurm test skipped: {msg}")?;
         return Ok(());
     }
     let dir = std::env::temp_dir().join(format!("reconstruct-sweep-slurm-{}", std::process::id()));
@@ -53,13 +55,15 @@ fn slurm_array_gathers_to_the_serial_ablation_table() -> Result<()> {
     let path = dir.join("sweep.jsonl");
     manifest::write(&path, &lines, false)?;
 
-    let status = Command::new("bash")
+    let run = Command::new("bash")
         .arg(crate_dir().join("tools/slurm/test_array.sh"))
         .arg(&path)
         .arg(env!("CARGO_BIN_EXE_reconstruct"))
         .arg("150")
-        .status()?;
-    assert!(status.success(), "the Slurm array failed (its logs are above)");
+        .output()?;
+    let log = format!("{}{}", String::from_utf8_lossy(&run.stdout), String::from_utf8_lossy(&run.stderr));
+    assert!(run.status.success(), "the Slurm array failed:\n{log}");
+    println!("{}", log.lines().filter(|l| l.starts_with("submitted") || l.starts_with("array job")).collect::<Vec<_>>().join("\n"));
 
     let gathered = gather::gather(&lines)?;
     assert!(gathered.problems.is_empty(), "{:?}", gathered.problems);
