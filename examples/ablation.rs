@@ -4,6 +4,7 @@
 //!
 //! cargo run --release --example ablation -- [--scene nerfactor_hotdog] [--iterations 1000]
 //!     [--mode auto|split-sum|mc] [--sweep 0.5,1.5,2] [--labels DIR] [--idarb] [--out DIR]
+//!     [--plan sweep.jsonl [--append]]   (write the runs to a sweep manifest instead: docs/scale.md)
 
 use std::path::PathBuf;
 
@@ -12,6 +13,7 @@ use clap::Parser;
 use reconstruct::fit::config::FitConfig;
 use reconstruct::jobs::ablation::{default_out, run, write_prior_quality_plot, AblationOptions};
 use reconstruct::jobs::reconstruct::ReconstructOptions;
+use reconstruct::jobs::sweep::plan::{self as sweep_plan, write_plan, PlanArgs};
 use reconstruct::prior::source::PriorSource;
 use reconstruct::render::view::ShadingMode;
 
@@ -45,6 +47,8 @@ struct Args {
     /// Only redraw prior_quality.png from an existing ablation.json in the output folder.
     #[arg(long)]
     replot: bool,
+    #[command(flatten)]
+    plan: PlanArgs,
 }
 
 fn main() -> Result<()> {
@@ -75,7 +79,12 @@ fn main() -> Result<()> {
     if let Some(d) = a.labels {
         sources.push(PriorSource::LabelsDir(d));
     }
-    let report = run(&AblationOptions { base, sources, sweep: a.sweep })?;
+    let opts = AblationOptions { base, sources, sweep: a.sweep };
+    if let Some(path) = &a.plan.plan {
+        println!("{}", write_plan(path, &sweep_plan::ablation(&opts), a.plan.append)?);
+        return Ok(());
+    }
+    let report = run(&opts)?;
     println!("{}", report.markdown());
     println!("wrote {}", out.join("ablation.md").display());
     Ok(())

@@ -3,6 +3,7 @@
 //! tradeoff.png (Pareto front marked) and prints the front.
 //!
 //! cargo run --release --example tradeoff -- [--scene nerfactor_hotdog] [--iterations 200] [--out DIR]
+//!     [--plan sweep.jsonl [--append]]   (write the runs to a sweep manifest instead: docs/scale.md)
 
 use std::path::PathBuf;
 
@@ -10,6 +11,7 @@ use anyhow::Result;
 use clap::Parser;
 use reconstruct::fit::config::FitConfig;
 use reconstruct::jobs::reconstruct::ReconstructOptions;
+use reconstruct::jobs::sweep::plan::{self as sweep_plan, write_plan, PlanArgs};
 use reconstruct::jobs::tradeoff::{default_out, default_points, front_table, run};
 
 #[global_allocator]
@@ -29,6 +31,8 @@ struct Args {
     eval_spp: u32,
     #[arg(long)]
     out: Option<PathBuf>,
+    #[command(flatten)]
+    plan: PlanArgs,
 }
 
 fn main() -> Result<()> {
@@ -40,6 +44,10 @@ fn main() -> Result<()> {
         eval_test_views: Some(a.test_views),
         ..ReconstructOptions::new(&a.scene, FitConfig { checkpoint_every: 0, ..FitConfig::default() }, a.eval_spp, out.clone())
     };
+    if let Some(path) = &a.plan.plan {
+        println!("{}", write_plan(path, &sweep_plan::tradeoff(&base, &default_points(a.iterations))?, a.plan.append)?);
+        return Ok(());
+    }
     let results = run(&base, &default_points(a.iterations))?;
     println!("{}", front_table(&results));
     println!("wrote {} and {}", out.join("tradeoff.csv").display(), out.join("tradeoff.png").display());

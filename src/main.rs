@@ -10,6 +10,9 @@ use reconstruct::jobs::ablation;
 use reconstruct::prior::source::PriorSource;
 use reconstruct::jobs::reconstruct::{run as run_job, GeometrySource, ReconstructOptions};
 use reconstruct::jobs::render::{run, RenderOptions};
+use reconstruct::jobs::label::{self, LabelOptions, ViewSelection};
+use reconstruct::jobs::sweep::plan::{self as sweep_plan, PlanArgs};
+use reconstruct::jobs::sweep::{gather, manifest, task};
 use reconstruct::render::view::ShadingMode;
 
 #[global_allocator]
@@ -180,6 +183,42 @@ enum Command {
         /// Output folder (default: runs/ablation-<scene>).
         #[arg(long)]
         out: Option<PathBuf>,
+        #[command(flatten)]
+        plan: PlanArgs,
+    },
+    /// Sweeps as manifests of independent tasks for Slurm job arrays, GNU parallel or Kubernetes
+    /// Indexed Jobs: plan them, run one, gather the tables (docs/scale.md).
+    Sweep {
+        #[command(subcommand)]
+        action: SweepAction,
+    },
+    /// Label training views (the IDArb network; oracle or idarb-sim need no weights) into a
+    /// folder that `--prior labels:DIR` reads.
+    Label {
+        #[arg(long, default_value = "default")]
+        scene: String,
+        /// Data folder overriding the spec's.
+        #[arg(long)]
+        data: Option<PathBuf>,
+        /// idarb, oracle or idarb-sim[:LEVEL].
+        #[arg(long, default_value = "idarb")]
+        source: String,
+        /// How many training views, evenly spread (as --labelled-views).
+        #[arg(long, default_value_t = 100)]
+        views: usize,
+        /// These views instead (e.g. train_003; repeatable).
+        #[arg(long = "view")]
+        names: Vec<String>,
+        #[arg(long)]
+        out: PathBuf,
+        /// IDArb weights folder (else the IDARB_WEIGHTS variable).
+        #[arg(long)]
+        idarb_weights: Option<PathBuf>,
+        /// Seed of simulated labels (the run's --seed).
+        #[arg(long, default_value_t = 0)]
+        seed: u64,
+        #[command(flatten)]
+        plan: PlanArgs,
     },
     /// Render a scene's ground truth under probes and compare with the dataset's images.
     Render {
@@ -209,6 +248,57 @@ enum Command {
         #[arg(long)]
         out: Option<PathBuf>,
     },
+}
+
+/// Run a sweep: plan, run one task, gather.
+#[derive(Subcommand)]
+enum SweepAction {
+    /// Run one task of a manifest: --task N, else $SLURM_ARRAY_TASK_ID, else $JOB_COMPLETION_INDEX.
+    Run {
+        #[arg(long, default_value = "sweep.jsonl")]
+        manifest: PathBuf,
+        #[arg(long)]
+        task: Option<usize>,
+        /// Run it again even when it finished (an unfinished run resumes from its checkpoint anyway).
+        #[arg(long)]
+        force: bool,
+    },
+    /// Write the tables of the finished runs and name the missing or failed ones.
+    Gather {
+        #[arg(long, default_value = "sweep.jsonl")]
+        manifest: PathBuf,
+    },
+}
+
+fn sweep(action: SweepAction) -> Result<()> {
+    match action {
+        SweepAction::Run { manifest: path, task: explicit, force } => {
+            let lines = manifest::read(&path)?;
+            let n = manifest::task_index(explicit, |k| std::env::var(k).ok(), lines.len())?;
+            let line = &lines[n];
+            eprintln!("task {n} of {}: {} → {}", lines.len(), line.name, line.job.out().display());
+            if !task::run(line, force)? {
+                println!("task {n} ({}) already finished: {}", line.name, task::status(line));
+            }
+        }
+        SweepAction::Gather { manifest: path } => {
+            let lines = manifest::read(&path)?;
+            let g = gather::gather(&lines)?;
+            for (file, md) in &g.tables {
+                println!("{md}\nwrote {}\n", file.display());
+            }
+            if g.labels > 0 {
+                println!("{} label folders made", g.labels);
+            }
+            if !g.problems.is_empty() {
+                for p in &g.problems {
+                    eprintln!("{p}");
+                }
+                anyhow::bail!("{} of {} tasks of {} have no result (listed above)", g.problems.len(), lines.len(), path.display());
+            }
+        }
+    }
+    Ok(())
 }
 
 fn reconstruct(a: ReconstructArgs) -> Result<()> {
@@ -244,7 +334,7 @@ fn main() -> Result<()> {
     let cli = Cli::parse();
     let Some(command) = cli.command else { return reconstruct(cli.reconstruct) };
     match command {
-        Command::Ablation { scene, iterations, geometry, geometry_iterations, mode, spp, sweep, eval_spp, out } => {
+        Command::Ablation { scene, iterations, geometry, geometry_iterations, mode, spp, sweep, eval_spp, out, plan } => {
             let out = out.unwrap_or_else(|| ablation::default_out(&scene));
             let fixed_mode = mode.fixed();
             let fit = FitConfig { mode: fixed_mode.unwrap_or(ShadingMode::SplitSum), iterations, spp, ..FitConfig::default() };
@@ -252,9 +342,25 @@ fn main() -> Result<()> {
             if let Some(v) = geometry_iterations { geometry_pass.iterations = v; }
             let base = ReconstructOptions { auto_mode: fixed_mode.is_none(), geometry: geometry.source(), geometry_pass, ..ReconstructOptions::new(&scene, fit, eval_spp, out.clone()) };
             let sources = vec![PriorSource::None, PriorSource::IdarbSim(1.0), PriorSource::Oracle];
-            let report = ablation::run(&ablation::AblationOptions { base, sources, sweep })?;
+            let opts = ablation::AblationOptions { base, sources, sweep };
+            if let Some(path) = plan.plan {
+                println!("{}", sweep_plan::write_plan(&path, &sweep_plan::ablation(&opts), plan.append)?);
+                return Ok(());
+            }
+            let report = ablation::run(&opts)?;
             println!("{}", report.markdown());
             println!("wrote {}", out.join("ablation.md").display());
+        }
+        Command::Sweep { action } => sweep(action)?,
+        Command::Label { scene, data, source, views, names, out, idarb_weights, seed, plan } => {
+            let views = if names.is_empty() { ViewSelection::Count(views) } else { ViewSelection::Names(names) };
+            let opts = LabelOptions { scene, data, source, views, out: out.clone(), idarb_weights, seed };
+            if let Some(path) = plan.plan {
+                println!("{}", sweep_plan::write_plan(&path, &sweep_plan::labels(&[opts]), plan.append)?);
+                return Ok(());
+            }
+            let report = label::run(&opts)?;
+            println!("labelled {} views of {} with {} in {:.0} s; use --prior labels:{}", report.views.len(), report.scene, report.source, report.seconds, out.display());
         }
         Command::Render { scene, data, views, probes, mode, spp, supersample, seed, out } => {
             let modes = match mode {

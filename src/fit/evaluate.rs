@@ -12,7 +12,7 @@
 
 use anyhow::{Context, Result};
 use rayon::prelude::*;
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 
 use crate::eval::metrics::{albedo_scale, mask_from_alpha, mean_angular_error_deg, mse, psnr, scale_colour};
 use crate::geometry::bvh::Bvh;
@@ -46,7 +46,7 @@ pub struct EvalSettings {
     pub max_test_views: Option<usize>,
 }
 
-#[derive(Clone, Debug, Serialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct RelightRecord {
     pub view: String,
     pub probe: String,
@@ -54,7 +54,7 @@ pub struct RelightRecord {
     pub psnr_scaled: f64,
 }
 
-#[derive(Clone, Debug, Default, Serialize)]
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct Evaluation {
     pub albedo_psnr_raw: Option<f64>,
     pub albedo_psnr_scaled: Option<f64>,

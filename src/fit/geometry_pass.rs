@@ -47,7 +47,7 @@ use crate::scene::Camera;
 
 use super::pixel_scatter::PixelMap;
 
-#[derive(Clone, Debug, Serialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, serde::Deserialize)]
 pub struct GeometryPassConfig {
     pub iterations: usize,
     /// Views per step.

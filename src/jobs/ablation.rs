@@ -4,7 +4,7 @@
 //! `ablation.md`, `ablation.json` and `prior_quality.png`; each run keeps its own run folder.
 
 use std::fmt::Write;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use anyhow::{Context, Result};
@@ -82,11 +82,9 @@ impl AblationReport {
     }
 }
 
-pub fn run(opts: &AblationOptions) -> Result<AblationReport> {
-    let base = &opts.base;
-    std::fs::create_dir_all(&base.out).with_context(|| format!("cannot create {}", base.out.display()))?;
-    let prepared = prepare(&base.scene, base.data.as_ref(), base.geometry, &base.geometry_pass, &base.fit, 1, base.progress)?;
-    let ctx = prior_context(base.fit.seed, base.idarb_weights.clone());
+/// The sources an ablation runs, in table order: `sources`, then the sweep levels not among them
+/// (level 0 is the oracle).
+pub fn all_sources(opts: &AblationOptions) -> Vec<PriorSource> {
     let mut sources = opts.sources.clone();
     for &l in &opts.sweep {
         let s = if l == 0.0 { PriorSource::Oracle } else { PriorSource::IdarbSim(l) };
@@ -94,8 +92,21 @@ pub fn run(opts: &AblationOptions) -> Result<AblationReport> {
             sources.push(s);
         }
     }
+    sources
+}
+
+/// The run folder of `source` inside the ablation folder `out`.
+pub fn run_folder(out: &Path, source: &PriorSource) -> PathBuf {
+    out.join(source.tag().replace([':', '/'], "_"))
+}
+
+pub fn run(opts: &AblationOptions) -> Result<AblationReport> {
+    let base = &opts.base;
+    std::fs::create_dir_all(&base.out).with_context(|| format!("cannot create {}", base.out.display()))?;
+    let prepared = prepare(&base.scene, base.data.as_ref(), base.geometry, &base.geometry_pass, &base.fit, 1, base.progress)?;
+    let ctx = prior_context(base.fit.seed, base.idarb_weights.clone());
     let mut rows = Vec::new();
-    for source in &sources {
+    for source in &all_sources(opts) {
         let t = Instant::now();
         let (views, description) = match views_with_prior(&prepared, source, &ctx, base.labelled_views) {
             Ok(v) => v,
@@ -105,12 +116,18 @@ pub fn run(opts: &AblationOptions) -> Result<AblationReport> {
             }
         };
         let mut o = base.clone();
-        o.out = base.out.join(source.tag().replace([':', '/'], "_"));
+        o.out = run_folder(&base.out, source);
         o.fit.prior_source = source.tag();
         eprintln!("ablation: {} → {}", source.tag(), o.out.display());
         let report = run_prepared(&prepared, views, &o, &description)?;
         rows.push(AblationRow { prior: source.tag(), description, evaluation: report.evaluation, seconds: t.elapsed().as_secs_f64() });
     }
+    finish(prepared.spec.name.clone(), rows, &opts.sweep, &base.out)
+}
+
+/// The report of finished rows (in table order): picks the sweep's rows, draws
+/// `prior_quality.png` and writes `ablation.json` and `ablation.md` into `out`.
+pub fn finish(scene: String, rows: Vec<AblationRow>, levels: &[f64], out: &Path) -> Result<AblationReport> {
     let level_of = |r: &AblationRow| -> Option<f64> {
         match r.prior.parse::<PriorSource>().ok()? {
             PriorSource::Oracle => Some(0.0),
@@ -119,15 +136,15 @@ pub fn run(opts: &AblationOptions) -> Result<AblationReport> {
         }
     };
     let mut sweep: Vec<(f64, Option<f64>, Option<f64>)> =
-        rows.iter().filter_map(|r| level_of(r).filter(|l| opts.sweep.contains(l)).map(|l| (l, r.evaluation.relight_psnr_scaled, r.evaluation.relight_psnr_raw))).collect();
+        rows.iter().filter_map(|r| level_of(r).filter(|l| levels.contains(l)).map(|l| (l, r.evaluation.relight_psnr_scaled, r.evaluation.relight_psnr_raw))).collect();
     sweep.sort_by(|a, b| a.0.total_cmp(&b.0));
-    let report = AblationReport { scene: prepared.spec.name.clone(), rows, sweep };
+    let report = AblationReport { scene, rows, sweep };
     if !report.sweep.is_empty() {
         let none = report.rows.iter().find(|r| r.prior == "none").and_then(|r| r.evaluation.relight_psnr_scaled);
-        write_prior_quality_plot(&report.scene, &report.sweep, none, &base.out.join("prior_quality.png"))?;
+        write_prior_quality_plot(&report.scene, &report.sweep, none, &out.join("prior_quality.png"))?;
     }
-    std::fs::write(base.out.join("ablation.json"), serde_json::to_string_pretty(&report)?)?;
-    std::fs::write(base.out.join("ablation.md"), report.markdown())?;
+    std::fs::write(out.join("ablation.json"), serde_json::to_string_pretty(&report)?)?;
+    std::fs::write(out.join("ablation.md"), report.markdown())?;
     Ok(report)
 }
 

@@ -21,7 +21,7 @@ use crate::scene::dataset::Dataset;
 use crate::scene::{ground_truth_mesh, ground_truth_source, SceneSpec};
 
 /// Where the geometry comes from.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, serde::Deserialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum GeometrySource {
     /// The scene's ground-truth mesh (NVDiffRecMC's second pass on known geometry).

@@ -3,7 +3,9 @@
 
 pub mod ablation;
 pub mod geometry;
+pub mod label;
 pub mod reconstruct;
 pub mod report_markdown;
 pub mod render;
+pub mod sweep;
 pub mod tradeoff;

@@ -5,10 +5,12 @@
 //! (time against PSNR with the Pareto front) and returns the front.
 
 use std::fmt::Write;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result};
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
+
+use crate::fit::evaluate::Evaluation;
 
 use crate::prior::source::PriorSource;
 use crate::render::effects::Effects;
@@ -18,7 +20,7 @@ use crate::report::plot::{write_pareto_plot, ScatterPoint};
 
 use super::reconstruct::{prepare, prior_context, run_prepared, views_with_prior, Prepared, ReconstructOptions};
 
-#[derive(Clone, Debug, Serialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct TradeoffPoint {
     pub name: String,
     /// Legend group (what the point varies).
@@ -91,34 +93,46 @@ pub fn run(base: &ReconstructOptions, points: &[TradeoffPoint]) -> Result<Vec<Tr
             prepared.push((pt.downscale, prepare(&base.scene, base.data.as_ref(), base.geometry, &base.geometry_pass, &base.fit, pt.downscale, base.progress)?));
         }
         let prep = &prepared.iter().find(|(d, _)| *d == pt.downscale).expect("prepared above").1;
-        let source: PriorSource = pt.prior.parse()?;
+        let (o, source) = point_options(base, k, pt)?;
         let ctx = prior_context(base.fit.seed, base.idarb_weights.clone());
         let (views, description) = views_with_prior(prep, &source, &ctx, pt.labelled_views)?;
-        let mut o = base.clone();
-        o.out = base.out.join(format!("{k:02}"));
-        o.fit.mode = pt.mode;
-        o.fit.spp = pt.spp;
-        o.fit.denoise = pt.denoise;
-        o.fit.iterations = pt.iterations;
-        o.fit.prior_source = source.tag();
-        o.effects_override = pt.effects;
         eprintln!("trade-off {}/{}: {}", k + 1, points.len(), pt.name);
         let report = run_prepared(prep, views, &o, &description)?;
-        let optimise_seconds = report.stage_seconds.iter().find(|s| s.0 == "optimise").map_or(f64::NAN, |s| s.1);
-        let e = &report.evaluation;
-        results.push(TradeoffResult {
-            point: pt.clone(),
-            optimise_seconds,
-            relight_psnr_scaled: e.relight_psnr_scaled,
-            relight_psnr_raw: e.relight_psnr_raw,
-            albedo_psnr_scaled: e.albedo_psnr_scaled,
-        });
-        write_outputs(base, &results)?;
+        results.push(result_of(pt, &report.evaluation, &report.stage_seconds));
+        write_outputs(&base.out, &results)?;
     }
     Ok(results)
 }
 
-fn write_outputs(base: &ReconstructOptions, results: &[TradeoffResult]) -> Result<()> {
+/// The options of point `k` (its run folder `base.out/<k>`) and its label source.
+pub fn point_options(base: &ReconstructOptions, k: usize, pt: &TradeoffPoint) -> Result<(ReconstructOptions, PriorSource)> {
+    let source: PriorSource = pt.prior.parse()?;
+    let mut o = base.clone();
+    o.out = base.out.join(format!("{k:02}"));
+    o.fit.mode = pt.mode;
+    o.fit.spp = pt.spp;
+    o.fit.denoise = pt.denoise;
+    o.fit.iterations = pt.iterations;
+    o.fit.prior_source = source.tag();
+    o.effects_override = pt.effects;
+    o.labelled_views = pt.labelled_views;
+    Ok((o, source))
+}
+
+/// The trade-off record of a finished run of `pt`.
+pub fn result_of(pt: &TradeoffPoint, e: &Evaluation, stage_seconds: &[(String, f64)]) -> TradeoffResult {
+    let optimise_seconds = stage_seconds.iter().find(|s| s.0 == "optimise").map_or(f64::NAN, |s| s.1);
+    TradeoffResult {
+        point: pt.clone(),
+        optimise_seconds,
+        relight_psnr_scaled: e.relight_psnr_scaled,
+        relight_psnr_raw: e.relight_psnr_raw,
+        albedo_psnr_scaled: e.albedo_psnr_scaled,
+    }
+}
+
+/// Writes `tradeoff.csv` and `tradeoff.png` (time against PSNR, Pareto front marked) into `out`.
+pub fn write_outputs(out: &Path, results: &[TradeoffResult]) -> Result<()> {
     let mut csv = String::from("name,group,mode,spp,denoise,iterations,downscale,shadows,bounces,prior,labelled_views,optimise_seconds,relight_psnr_scaled,relight_psnr_raw,albedo_psnr_scaled\n");
     let o = |v: Option<f64>| v.map_or(String::new(), |v| format!("{v:.3}"));
     for r in results {
@@ -143,12 +157,12 @@ fn write_outputs(base: &ReconstructOptions, results: &[TradeoffResult]) -> Resul
             o(r.albedo_psnr_scaled)
         );
     }
-    std::fs::write(base.out.join("tradeoff.csv"), csv)?;
+    std::fs::write(out.join("tradeoff.csv"), csv)?;
     let points: Vec<ScatterPoint> = results
         .iter()
         .filter_map(|r| Some(ScatterPoint { label: r.point.name.clone(), x: r.optimise_seconds, y: r.relight_psnr_scaled?, group: r.point.group.clone() }))
         .collect();
-    write_pareto_plot(&points, "optimisation wall time (s)", "relighting PSNR, scaled (dB)", "What accuracy costs in time", true, &base.out.join("tradeoff.png"))
+    write_pareto_plot(&points, "optimisation wall time (s)", "relighting PSNR, scaled (dB)", "What accuracy costs in time", true, &out.join("tradeoff.png"))
 }
 
 /// The Pareto front (fastest to most accurate) as a Markdown table, with the extra seconds each
