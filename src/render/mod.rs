@@ -5,6 +5,7 @@ pub mod effects;
 pub mod gbuffer;
 pub mod montecarlo;
 pub mod montecarlo_op;
+pub mod ray_count;
 pub mod splitsum;
 pub mod splitsum_op;
 pub mod view;

@@ -21,6 +21,7 @@ use crate::material::{MaterialField, SurfaceParams};
 use crate::math::Frame;
 use crate::render::effects::Effects;
 use crate::render::gbuffer::{GBuffer, Surfel};
+use crate::render::ray_count::{self, RayCount};
 use crate::rng::Sampler;
 
 #[derive(Clone, Copy, Debug)]
@@ -48,8 +49,9 @@ pub struct McBuffers {
     /// Specular radiance.
     pub specular: Vec<Vec3>,
     /// Rays traced after the primary ones: shadow rays, and bounce rays with interreflection (zero
-    /// when shadows are off: an effect that is off costs nothing).
-    pub shadow_rays: u64,
+    /// when shadows are off: an effect that is off costs nothing). The G-buffer's primary rays
+    /// are counted where it is traced.
+    pub rays: RayCount,
 }
 
 impl McBuffers {
@@ -117,7 +119,7 @@ pub fn local_outgoing(s: &Surfel, wo: Vec3) -> (Frame, Vec3) {
 
 /// Draws one surfel's samples (`spp` of each strategy, balance heuristic) and hands each
 /// contributing one to `visit`; returns the rays traced (shadow rays and, with interreflection, the
-/// rays of the bounces below). The single sampling code path of the renderer and of the
+/// bounce rays and the shadow rays of the vertices they reach). The single sampling code path of the renderer and of the
 /// differentiable shader (`montecarlo_op`), so both see the same samples.
 #[allow(clippy::too_many_arguments)] // the renderer's state for one surfel, passed as is
 pub fn draw_samples(
@@ -129,7 +131,7 @@ pub fn draw_samples(
     settings: &McSettings,
     rng: &mut Sampler,
     visit: &mut dyn FnMut(McSample),
-) -> u64 {
+) -> RayCount {
     draw_samples_with_bounces(s, wo, p, light, scene, settings, settings.spp.max(1), settings.effects.indirect_bounces, rng, visit)
 }
 
@@ -145,7 +147,7 @@ fn draw_samples_with_bounces(
     bounces_left: u32,
     rng: &mut Sampler,
     visit: &mut dyn FnMut(McSample),
-) -> u64 {
+) -> RayCount {
     let (frame, wo_l) = local_outgoing(s, wo);
     let nov = brdf::clamp_cos(wo_l.z);
     let alpha = brdf::alpha_from_roughness(p.roughness);
@@ -159,7 +161,7 @@ fn draw_samples_with_bounces(
     };
     let eps = settings.ray_epsilon;
     let origin = s.position + s.geo_normal * eps;
-    let mut rays = 0u64;
+    let mut rays = RayCount::ZERO;
     // Light arriving from behind the geometric surface is blocked by the surface itself.
     let above = |wi: Vec3| wi.dot(s.geo_normal) > 0.0;
     for k in 0..spp {
@@ -169,7 +171,7 @@ fn draw_samples_with_bounces(
         let wi_l = frame.to_local(ls.dir);
         if ls.pdf > 0.0 && wi_l.z > 0.0 && above(ls.dir) {
             let visible = !settings.effects.shadows || {
-                rays += 1;
+                rays.shadow += 1;
                 !scene.bvh.any_hit(origin, ls.dir, eps, f32::INFINITY)
             };
             if visible {
@@ -193,12 +195,12 @@ fn draw_samples_with_bounces(
         if !settings.effects.shadows {
             visit(env(wi));
         } else if bounces_left == 0 {
-            rays += 1;
+            rays.shadow += 1;
             if !scene.bvh.any_hit(origin, wi, eps, f32::INFINITY) {
                 visit(env(wi));
             }
         } else {
-            rays += 1;
+            rays.bounce += 1;
             match scene.bvh.closest_hit(origin, wi, eps, f32::INFINITY) {
                 None => visit(env(wi)),
                 Some(hit) => {
@@ -215,7 +217,7 @@ fn draw_samples_with_bounces(
 
 /// One-sample estimate of the radiance surface point `y` sends along `wo` (direct light plus
 /// `bounces_left` further bounces); returns it with the rays traced.
-fn outgoing_radiance(y: &Surfel, wo: Vec3, light: &LightSampler, scene: &TraceScene, settings: &McSettings, bounces_left: u32, rng: &mut Sampler) -> (Vec3, u64) {
+fn outgoing_radiance(y: &Surfel, wo: Vec3, light: &LightSampler, scene: &TraceScene, settings: &McSettings, bounces_left: u32, rng: &mut Sampler) -> (Vec3, RayCount) {
     let p = y.material(scene.materials);
     let (_, wo_l) = local_outgoing(y, wo);
     let mut radiance = Vec3::ZERO;
@@ -238,7 +240,7 @@ fn sample_radiance(p: &SurfaceParams, wo_l: Vec3, smp: &McSample, specular: bool
 /// Diffuse (demodulated) and specular estimates for one surfel, `spp` samples of each strategy.
 /// Returns (diffuse, specular, rays traced).
 #[allow(clippy::too_many_arguments)]
-pub fn shade_point(s: &Surfel, wo: Vec3, p: &SurfaceParams, light: &LightSampler, scene: &TraceScene, settings: &McSettings, rng: &mut Sampler) -> (Vec3, Vec3, u64) {
+pub fn shade_point(s: &Surfel, wo: Vec3, p: &SurfaceParams, light: &LightSampler, scene: &TraceScene, settings: &McSettings, rng: &mut Sampler) -> (Vec3, Vec3, RayCount) {
     let (_, wo_l) = local_outgoing(s, wo);
     let (mut diffuse, mut specular) = (Vec3::ZERO, Vec3::ZERO);
     let rays = draw_samples(s, wo, p, light, scene, settings, rng, &mut |smp| {
@@ -253,8 +255,9 @@ pub fn shade_point(s: &Surfel, wo: Vec3, p: &SurfaceParams, light: &LightSampler
 }
 
 /// Shade every covered pixel. `stream_offset` separates the random streams of different views.
+/// The rays traced are returned and added to the process-wide tally (`ray_count`).
 pub fn shade(gbuf: &GBuffer, params: &[Option<SurfaceParams>], light: &LightSampler, scene: &TraceScene, settings: &McSettings, stream_offset: u64) -> McBuffers {
-    let shaded: Vec<(Vec3, Vec3, u64)> = gbuf
+    let shaded: Vec<(Vec3, Vec3, RayCount)> = gbuf
         .surfels
         .par_iter()
         .zip(params.par_iter())
@@ -265,12 +268,10 @@ pub fn shade(gbuf: &GBuffer, params: &[Option<SurfaceParams>], light: &LightSamp
                 let wo = (gbuf.origin - s.position).normalize();
                 shade_point(s, wo, p, light, scene, settings, &mut rng)
             }
-            _ => (Vec3::ZERO, Vec3::ZERO, 0),
+            _ => (Vec3::ZERO, Vec3::ZERO, RayCount::ZERO),
         })
         .collect();
-    McBuffers {
-        diffuse: shaded.iter().map(|s| s.0).collect(),
-        specular: shaded.iter().map(|s| s.1).collect(),
-        shadow_rays: shaded.iter().map(|s| s.2).sum(),
-    }
+    let rays = shaded.iter().map(|s| s.2).sum();
+    ray_count::record(rays);
+    McBuffers { diffuse: shaded.iter().map(|s| s.0).collect(), specular: shaded.iter().map(|s| s.1).collect(), rays }
 }

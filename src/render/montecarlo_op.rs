@@ -32,6 +32,7 @@ use crate::material::SurfaceParams;
 use crate::optim::tape::{apply, scatter_add_banded, Kernel, Real};
 use crate::render::gbuffer::Surfel;
 use crate::render::montecarlo::{draw_samples, local_outgoing, Incident, McSettings, TraceScene};
+use crate::render::ray_count::{self, RayCount};
 use crate::rng::Sampler;
 
 /// One pixel's fixed data: its surfel, the direction to the camera and its random stream.
@@ -84,8 +85,9 @@ pub struct McShading {
     samples: Arc<[Stored]>,
     light_res: usize,
     specular: bool,
-    /// Shadow rays traced by `prepare` (bounce rays included).
-    pub shadow_rays: u64,
+    /// Rays traced by `prepare` (shadow and bounce; the G-buffer's primary rays are counted where
+    /// it is traced). Also added to the process-wide tally.
+    pub rays: RayCount,
     /// Stored samples whose radiance comes from the object's surface (interreflection).
     pub surface_samples: usize,
 }
@@ -96,11 +98,11 @@ impl McShading {
     pub fn prepare(pixels: &[Option<McPixel>], kd: &[[f32; 3]], ks: &[[f32; 3]], light: &CubeMap, scene: &TraceScene, settings: &McSettings) -> McShading {
         let sampler = LightSampler::new(light);
         let inv_n = 1.0 / settings.spp.max(1) as f32;
-        let per_pixel: Vec<(Option<[f32; 3]>, Vec<Stored>, u64)> = pixels
+        let per_pixel: Vec<(Option<[f32; 3]>, Vec<Stored>, RayCount)> = pixels
             .par_iter()
             .enumerate()
             .map(|(i, px)| {
-                let Some(px) = px else { return (None, Vec::new(), 0) };
+                let Some(px) = px else { return (None, Vec::new(), RayCount::ZERO) };
                 let p = SurfaceParams { kd: Vec3::from_array(kd[i]), roughness: ks[i][1], metallic: ks[i][2] };
                 let mut rng = Sampler::new(settings.seed, px.stream);
                 let mut stored = Vec::with_capacity(2 * settings.spp as usize);
@@ -116,7 +118,7 @@ impl McShading {
             .collect();
         let mut offsets = Vec::with_capacity(pixels.len() + 1);
         let mut samples = Vec::new();
-        let mut rays = 0;
+        let mut rays = RayCount::ZERO;
         offsets.push(0u32);
         let mut wo_l = Vec::with_capacity(pixels.len());
         for (w, s, r) in per_pixel {
@@ -125,8 +127,9 @@ impl McShading {
             offsets.push(samples.len() as u32);
             rays += r;
         }
+        ray_count::record(rays);
         let surface_samples = samples.iter().filter(|s| matches!(s.source, Source::Surface(_))).count();
-        McShading { wo_l: wo_l.into(), offsets: offsets.into(), samples: samples.into(), light_res: light.res, specular: settings.effects.specular, shadow_rays: rays, surface_samples }
+        McShading { wo_l: wo_l.into(), offsets: offsets.into(), samples: samples.into(), light_res: light.res, specular: settings.effects.specular, rays, surface_samples }
     }
 
     pub fn len(&self) -> usize {
