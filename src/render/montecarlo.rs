@@ -9,13 +9,19 @@
 //! the same sampler at that point with one sample of each strategy (next-event estimation plus a
 //! BSDF sample), recursively for the remaining bounces. Only BSDF sampling can find a surface, so
 //! such a sample's weight is 1/pdf (no MIS weight against the light, which cannot produce it).
+//!
+//! Work per sample is kept to what can change the result: no shadow ray for a direction below
+//! either horizon or with zero pdf, and at the vertices of bounce paths (whose radiance is a
+//! detached constant, so nothing is differentiated through it) none for a direction whose light
+//! is black either. At the pixel's own vertex a black texel still gets its ray: the light is a
+//! parameter, and the texel's gradient needs its visibility.
 
 use glam::Vec3;
 use rayon::prelude::*;
 
 use crate::geometry::bvh::Bvh;
 use crate::geometry::Mesh;
-use crate::light::sampler::LightSampler;
+use crate::light::sampler::{LightLookup, LightSampler};
 use crate::material::brdf::{self, COS_EPS};
 use crate::material::{MaterialField, SurfaceParams};
 use crate::math::Frame;
@@ -89,8 +95,8 @@ fn specular_probability(p: &SurfaceParams, nov: f32, effects: Effects) -> f32 {
 /// Where a sample's incident radiance comes from.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Incident {
-    /// The environment light (a nearest-texel read of the cube map along `wi`).
-    Light,
+    /// The environment light: this texel of the cube map (the nearest-texel read along `wi`).
+    Light(u32),
     /// The object's own surface along `wi` (interreflection): an estimate of its outgoing radiance.
     Surface,
 }
@@ -132,7 +138,7 @@ pub fn draw_samples(
     rng: &mut Sampler,
     visit: &mut dyn FnMut(McSample),
 ) -> RayCount {
-    draw_samples_with_bounces(s, wo, p, light, scene, settings, settings.spp.max(1), settings.effects.indirect_bounces, rng, visit)
+    draw_samples_with_bounces(s, wo, p, light, scene, settings, settings.spp.max(1), settings.effects.indirect_bounces, false, rng, visit)
 }
 
 #[allow(clippy::too_many_arguments)]
@@ -145,6 +151,8 @@ fn draw_samples_with_bounces(
     settings: &McSettings,
     spp: u32,
     bounces_left: u32,
+    // A detached vertex (on a bounce path): samples of black light contribute exactly nothing.
+    detached: bool,
     rng: &mut Sampler,
     visit: &mut dyn FnMut(McSample),
 ) -> RayCount {
@@ -169,14 +177,14 @@ fn draw_samples_with_bounces(
         let (r0, r1) = rng.next_2d();
         let ls = light.sample(((k as f32 + r0) / spp as f32, r1));
         let wi_l = frame.to_local(ls.dir);
-        if ls.pdf > 0.0 && wi_l.z > 0.0 && above(ls.dir) {
+        if ls.pdf > 0.0 && wi_l.z > 0.0 && above(ls.dir) && !(detached && ls.radiance == Vec3::ZERO) {
             let visible = !settings.effects.shadows || {
                 rays.shadow += 1;
                 !scene.bvh.any_hit(origin, ls.dir, eps, f32::INFINITY)
             };
             if visible {
                 let w = ls.pdf / (ls.pdf + bsdf_pdf(wi_l));
-                visit(McSample { wi: ls.dir, wi_l, radiance: ls.radiance, weight: w / ls.pdf, incident: Incident::Light });
+                visit(McSample { wi: ls.dir, wi_l, radiance: ls.radiance, weight: w / ls.pdf, incident: Incident::Light(ls.texel) });
             }
         }
         // BSDF sample.
@@ -191,18 +199,22 @@ fn draw_samples_with_bounces(
         if pdf_b <= 0.0 || !above(wi) {
             continue;
         }
-        let env = |wi: Vec3| McSample { wi, wi_l, radiance: light.radiance(wi), weight: pdf_b / (pdf_b + light.pdf(wi)) / pdf_b, incident: Incident::Light };
+        let env = |l: LightLookup| McSample { wi, wi_l, radiance: l.radiance, weight: pdf_b / (pdf_b + l.pdf) / pdf_b, incident: Incident::Light(l.texel) };
         if !settings.effects.shadows {
-            visit(env(wi));
+            visit(env(light.lookup(wi)));
         } else if bounces_left == 0 {
+            let l = light.lookup(wi);
+            if detached && l.radiance == Vec3::ZERO {
+                continue;
+            }
             rays.shadow += 1;
             if !scene.bvh.any_hit(origin, wi, eps, f32::INFINITY) {
-                visit(env(wi));
+                visit(env(l));
             }
         } else {
             rays.bounce += 1;
             match scene.bvh.closest_hit(origin, wi, eps, f32::INFINITY) {
-                None => visit(env(wi)),
+                None => visit(env(light.lookup(wi))),
                 Some(hit) => {
                     let y = Surfel::from_hit(scene.mesh, &hit, origin, wi);
                     let (radiance, r) = outgoing_radiance(&y, -wi, light, scene, settings, bounces_left - 1, rng);
@@ -221,7 +233,7 @@ fn outgoing_radiance(y: &Surfel, wo: Vec3, light: &LightSampler, scene: &TraceSc
     let p = y.material(scene.materials);
     let (_, wo_l) = local_outgoing(y, wo);
     let mut radiance = Vec3::ZERO;
-    let rays = draw_samples_with_bounces(y, wo, &p, light, scene, settings, 1, bounces_left, rng, &mut |smp| {
+    let rays = draw_samples_with_bounces(y, wo, &p, light, scene, settings, 1, bounces_left, true, rng, &mut |smp| {
         radiance += sample_radiance(&p, wo_l, &smp, settings.effects.specular);
     });
     (radiance, rays)

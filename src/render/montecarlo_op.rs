@@ -35,6 +35,10 @@ use crate::render::montecarlo::{draw_samples, local_outgoing, Incident, McSettin
 use crate::render::ray_count::{self, RayCount};
 use crate::rng::Sampler;
 
+/// Pixels per parallel work item of [`McShading::prepare`]: enough to amortise one sample list's
+/// allocation, few enough that two threads stay balanced on a 20k-pixel view.
+const PREPARE_CHUNK: usize = 256;
+
 /// One pixel's fixed data: its surfel, the direction to the camera and its random stream.
 #[derive(Clone, Copy, Debug)]
 pub struct McPixel {
@@ -98,33 +102,47 @@ impl McShading {
     pub fn prepare(pixels: &[Option<McPixel>], kd: &[[f32; 3]], ks: &[[f32; 3]], light: &CubeMap, scene: &TraceScene, settings: &McSettings) -> McShading {
         let sampler = LightSampler::new(light);
         let inv_n = 1.0 / settings.spp.max(1) as f32;
-        let per_pixel: Vec<(Option<[f32; 3]>, Vec<Stored>, RayCount)> = pixels
-            .par_iter()
+        // Pixels in chunks, each filling one sample list (no allocation per pixel); chunks are
+        // concatenated in order, so pixel p's samples are still samples[offsets[p]..offsets[p+1]].
+        let per_chunk: Vec<(Vec<Option<[f32; 3]>>, Vec<u32>, Vec<Stored>, RayCount)> = pixels
+            .par_chunks(PREPARE_CHUNK)
             .enumerate()
-            .map(|(i, px)| {
-                let Some(px) = px else { return (None, Vec::new(), RayCount::ZERO) };
-                let p = SurfaceParams { kd: Vec3::from_array(kd[i]), roughness: ks[i][1], metallic: ks[i][2] };
-                let mut rng = Sampler::new(settings.seed, px.stream);
-                let mut stored = Vec::with_capacity(2 * settings.spp as usize);
-                let rays = draw_samples(&px.surfel, px.wo, &p, &sampler, scene, settings, &mut rng, &mut |s| {
-                    let source = match s.incident {
-                        Incident::Light => Source::Texel(light.nearest_texel(s.wi) as u32),
-                        Incident::Surface => Source::Surface(s.radiance.to_array()),
-                    };
-                    stored.push(Stored { source, wi_l: s.wi_l.to_array(), weight: s.weight * inv_n });
-                });
-                (Some(local_outgoing(&px.surfel, px.wo).1.to_array()), stored, rays)
+            .map(|(c, chunk)| {
+                let mut wo_l = Vec::with_capacity(chunk.len());
+                let mut counts = Vec::with_capacity(chunk.len());
+                let mut stored = Vec::with_capacity(chunk.len() * 2 * settings.spp.max(1) as usize);
+                let mut rays = RayCount::ZERO;
+                for (j, px) in chunk.iter().enumerate() {
+                    let before = stored.len();
+                    wo_l.push(px.map(|px| local_outgoing(&px.surfel, px.wo).1.to_array()));
+                    if let Some(px) = px {
+                        let i = c * PREPARE_CHUNK + j;
+                        let p = SurfaceParams { kd: Vec3::from_array(kd[i]), roughness: ks[i][1], metallic: ks[i][2] };
+                        let mut rng = Sampler::new(settings.seed, px.stream);
+                        rays += draw_samples(&px.surfel, px.wo, &p, &sampler, scene, settings, &mut rng, &mut |s| {
+                            let source = match s.incident {
+                                Incident::Light(texel) => Source::Texel(texel),
+                                Incident::Surface => Source::Surface(s.radiance.to_array()),
+                            };
+                            stored.push(Stored { source, wi_l: s.wi_l.to_array(), weight: s.weight * inv_n });
+                        });
+                    }
+                    counts.push((stored.len() - before) as u32);
+                }
+                (wo_l, counts, stored, rays)
             })
             .collect();
         let mut offsets = Vec::with_capacity(pixels.len() + 1);
-        let mut samples = Vec::new();
+        let mut samples = Vec::with_capacity(per_chunk.iter().map(|c| c.2.len()).sum());
         let mut rays = RayCount::ZERO;
         offsets.push(0u32);
         let mut wo_l = Vec::with_capacity(pixels.len());
-        for (w, s, r) in per_pixel {
-            wo_l.push(w);
+        for (w, counts, s, r) in per_chunk {
+            wo_l.extend(w);
+            for n in counts {
+                offsets.push(offsets[offsets.len() - 1] + n);
+            }
             samples.extend(s);
-            offsets.push(samples.len() as u32);
             rays += r;
         }
         ray_count::record(rays);
