@@ -2,6 +2,7 @@
 
 pub mod atlas;
 pub mod bvh;
+pub mod bvh_wide;
 pub mod gltf_io;
 pub mod mesh;
 pub mod obj;
