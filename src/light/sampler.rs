@@ -44,11 +44,14 @@ struct Texel {
 }
 
 /// One slot of the alias table: keep the slot's texel when the uniform offset is below
-/// `threshold`, else take `alias`.
+/// `threshold`, else take `alias`. The slot's own texel is copied in: the slot is a random read
+/// (a cache miss on a large map), and with its texel beside it, keeping it costs no second miss;
+/// aliases point at heavy texels, few and mostly cached.
 #[derive(Clone, Copy, Debug)]
 struct AliasSlot {
     threshold: f32,
     alias: u32,
+    own: Texel,
 }
 
 #[derive(Clone, Debug)]
@@ -64,15 +67,15 @@ pub struct LightSampler {
 /// probability `threshold` and otherwise gives `alias`; P(k) = (threshold_k + Σ_{alias_i = k}
 /// (1 − threshold_i)) / n = w_k / Σw up to rounding. Zero-weight entries have threshold 0 and an
 /// alias of positive weight, so they are never drawn. f64 so that a 1e5 sun does not swamp the rest.
-fn alias_table(w: &[f64]) -> Vec<AliasSlot> {
+fn alias_table(w: &[f64], texels: &[Texel]) -> Vec<AliasSlot> {
     let n = w.len();
     let total: f64 = w.iter().sum();
     let mut scaled: Vec<f64> = w.iter().map(|x| x * n as f64 / total).collect();
-    let mut slots: Vec<AliasSlot> = (0..n).map(|i| AliasSlot { threshold: 1.0, alias: i as u32 }).collect();
+    let mut slots: Vec<AliasSlot> = (0..n).map(|i| AliasSlot { threshold: 1.0, alias: i as u32, own: texels[i] }).collect();
     let (mut small, mut large): (Vec<usize>, Vec<usize>) = (0..n).partition(|&i| scaled[i] < 1.0);
     while let (Some(&s), Some(&l)) = (small.last(), large.last()) {
         small.pop();
-        slots[s] = AliasSlot { threshold: scaled[s] as f32, alias: l as u32 };
+        (slots[s].threshold, slots[s].alias) = (scaled[s] as f32, l as u32);
         scaled[l] -= 1.0 - scaled[s];
         if scaled[l] < 1.0 {
             large.pop();
@@ -109,8 +112,8 @@ impl LightSampler {
             weights = (0..6 * res * res).map(|k| area[k % (res * res)] as f64).collect();
             total = weights.iter().sum();
         }
-        let texels = radiance.iter().zip(&weights).map(|(&radiance, w)| Texel { radiance, prob: (w / total) as f32 }).collect();
-        LightSampler { res, texels, slots: alias_table(&weights), plane_area: (2.0 / res as f32).powi(2) }
+        let texels: Vec<Texel> = radiance.iter().zip(&weights).map(|(&radiance, w)| Texel { radiance, prob: (w / total) as f32 }).collect();
+        LightSampler { res, slots: alias_table(&weights, &texels), texels, plane_area: (2.0 / res as f32).powi(2) }
     }
 
     /// Probability of choosing texel `k`.
@@ -125,9 +128,13 @@ impl LightSampler {
 
     /// Density P_k·|d|³/A_k at texel k and face coordinates (s, t).
     fn density(&self, k: usize, s: f32, t: f32) -> f32 {
+        Self::density_of(&self.texels[k], s, t, self.plane_area)
+    }
+
+    fn density_of(texel: &Texel, s: f32, t: f32, plane_area: f32) -> f32 {
         let q = 1.0 + s * s + t * t;
         let jacobian = q * q.sqrt(); // q^1.5 without powf (a hot path)
-        self.texels[k].prob * jacobian / self.plane_area
+        texel.prob * jacobian / plane_area
     }
 
     /// Solid-angle density of [`Self::sample`] at `dir`.
@@ -151,16 +158,16 @@ impl LightSampler {
         let x = u.0.clamp(0.0, 1.0) as f64 * n as f64;
         let slot = (x as usize).min(n - 1);
         let r = (x - slot as f64).min(1.0);
-        let AliasSlot { threshold, alias } = self.slots[slot];
+        let AliasSlot { threshold, alias, own } = self.slots[slot];
         let q = threshold as f64;
-        let (k, fu) = if r < q { (slot, r / q) } else { (alias as usize, (r - q) / (1.0 - q)) };
+        let (k, texel, fu) = if r < q { (slot, own, r / q) } else { (alias as usize, self.texels[alias as usize], (r - q) / (1.0 - q)) };
         let fu = if fu.is_finite() { (fu as f32).clamp(0.0, 0.999_999) } else { 0.5 };
         let fv = u.1.clamp(0.0, 0.999_999);
         let res = self.res;
         let (face, i, j) = (k / (res * res), (k / res) % res, k % res);
         let s = 2.0 * (j as f32 + fu) / res as f32 - 1.0;
         let t = 2.0 * (i as f32 + fv) / res as f32 - 1.0;
-        LightSample { dir: face_dir(face, s, t).normalize(), texel: k as u32, radiance: self.texels[k].radiance, pdf: self.density(k, s, t) }
+        LightSample { dir: face_dir(face, s, t).normalize(), texel: k as u32, radiance: texel.radiance, pdf: Self::density_of(&texel, s, t, self.plane_area) }
     }
 }
 

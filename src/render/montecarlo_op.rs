@@ -85,8 +85,10 @@ impl Stored {
 pub struct McShading {
     /// Per pixel: local outgoing direction (None for a miss) and its sample range.
     wo_l: Arc<[Option<[f32; 3]>]>,
-    offsets: Arc<[u32]>,
-    samples: Arc<[Stored]>,
+    /// Per pixel: its samples' range in its chunk's list (pixel p is in chunk p / PREPARE_CHUNK).
+    ranges: Arc<[(u32, u32)]>,
+    /// One sample list per chunk of pixels, kept as drawn (no concatenated copy).
+    chunks: Arc<[Vec<Stored>]>,
     light_res: usize,
     specular: bool,
     /// Rays traced by `prepare` (shadow and bounce; the G-buffer's primary rays are counted where
@@ -102,14 +104,14 @@ impl McShading {
     pub fn prepare(pixels: &[Option<McPixel>], kd: &[[f32; 3]], ks: &[[f32; 3]], light: &CubeMap, scene: &TraceScene, settings: &McSettings) -> McShading {
         let sampler = LightSampler::new(light);
         let inv_n = 1.0 / settings.spp.max(1) as f32;
-        // Pixels in chunks, each filling one sample list (no allocation per pixel); chunks are
-        // concatenated in order, so pixel p's samples are still samples[offsets[p]..offsets[p+1]].
-        let per_chunk: Vec<(Vec<Option<[f32; 3]>>, Vec<u32>, Vec<Stored>, RayCount)> = pixels
+        // Pixels in chunks, each filling one sample list (no allocation per pixel, and none of
+        // the size of all samples: at 16 spp a view's samples take tens of MB).
+        let per_chunk: Vec<(Vec<Option<[f32; 3]>>, Vec<(u32, u32)>, Vec<Stored>, RayCount)> = pixels
             .par_chunks(PREPARE_CHUNK)
             .enumerate()
             .map(|(c, chunk)| {
                 let mut wo_l = Vec::with_capacity(chunk.len());
-                let mut counts = Vec::with_capacity(chunk.len());
+                let mut ranges = Vec::with_capacity(chunk.len());
                 let mut stored = Vec::with_capacity(chunk.len() * 2 * settings.spp.max(1) as usize);
                 let mut rays = RayCount::ZERO;
                 for (j, px) in chunk.iter().enumerate() {
@@ -127,27 +129,24 @@ impl McShading {
                             stored.push(Stored { source, wi_l: s.wi_l.to_array(), weight: s.weight * inv_n });
                         });
                     }
-                    counts.push((stored.len() - before) as u32);
+                    ranges.push((before as u32, stored.len() as u32));
                 }
-                (wo_l, counts, stored, rays)
+                (wo_l, ranges, stored, rays)
             })
             .collect();
-        let mut offsets = Vec::with_capacity(pixels.len() + 1);
-        let mut samples = Vec::with_capacity(per_chunk.iter().map(|c| c.2.len()).sum());
+        let mut ranges = Vec::with_capacity(pixels.len());
+        let mut chunks = Vec::with_capacity(per_chunk.len());
         let mut rays = RayCount::ZERO;
-        offsets.push(0u32);
         let mut wo_l = Vec::with_capacity(pixels.len());
-        for (w, counts, s, r) in per_chunk {
+        for (w, r, s, n) in per_chunk {
             wo_l.extend(w);
-            for n in counts {
-                offsets.push(offsets[offsets.len() - 1] + n);
-            }
-            samples.extend(s);
-            rays += r;
+            ranges.extend(r);
+            chunks.push(s);
+            rays += n;
         }
         ray_count::record(rays);
-        let surface_samples = samples.iter().filter(|s| matches!(s.source, Source::Surface(_))).count();
-        McShading { wo_l: wo_l.into(), offsets: offsets.into(), samples: samples.into(), light_res: light.res, specular: settings.effects.specular, rays, surface_samples }
+        let surface_samples = chunks.iter().flatten().filter(|s| matches!(s.source, Source::Surface(_))).count();
+        McShading { wo_l: wo_l.into(), ranges: ranges.into(), chunks: chunks.into(), light_res: light.res, specular: settings.effects.specular, rays, surface_samples }
     }
 
     pub fn len(&self) -> usize {
@@ -159,7 +158,8 @@ impl McShading {
     }
 
     fn pixel_samples(&self, p: usize) -> &[Stored] {
-        &self.samples[self.offsets[p] as usize..self.offsets[p + 1] as usize]
+        let (start, end) = self.ranges[p];
+        &self.chunks[p / PREPARE_CHUNK][start as usize..end as usize]
     }
 
     fn check_shapes(&self, shapes: &[&[usize]]) -> Result<()> {
