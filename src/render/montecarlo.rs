@@ -124,9 +124,9 @@ pub fn local_outgoing(s: &Surfel, wo: Vec3) -> (Frame, Vec3) {
 }
 
 /// Draws one surfel's samples (`spp` of each strategy, balance heuristic) and hands each
-/// contributing one to `visit`; returns the rays traced (shadow rays and, with interreflection, the
-/// bounce rays and the shadow rays of the vertices they reach). The single sampling code path of the renderer and of the
-/// differentiable shader (`montecarlo_op`), so both see the same samples.
+/// contributing one to `visit`; returns the rays traced (shadow rays and, with interreflection,
+/// the bounce rays and the shadow rays of the vertices they reach). The single sampling code path
+/// of the renderer and of the differentiable shader (`montecarlo_op`), so both see the same samples.
 #[allow(clippy::too_many_arguments)] // the renderer's state for one surfel, passed as is
 pub fn draw_samples(
     s: &Surfel,
