@@ -31,6 +31,9 @@ pub fn available() -> bool {
 
 /// The hit mask of `node`'s children for `ray` (the layout of obvhs' `CwBvhNode::intersect_ray`:
 /// inner children's traversal bits in the top byte, leaf primitives' bits in the low 24).
+///
+/// # Safety
+/// Call only where [`available`] returned true (the CPU must have AVX2).
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
 #[inline]

@@ -39,6 +39,10 @@ use crate::rng::Sampler;
 /// allocation, few enough that two threads stay balanced on a 20k-pixel view.
 const PREPARE_CHUNK: usize = 256;
 
+/// What `prepare` draws for one chunk of pixels: per pixel its local outgoing direction and its
+/// range in the chunk's sample list, the list, and the rays traced.
+type ChunkSamples = (Vec<Option<[f32; 3]>>, Vec<(u32, u32)>, Vec<Stored>, RayCount);
+
 /// One pixel's fixed data: its surfel, the direction to the camera and its random stream.
 #[derive(Clone, Copy, Debug)]
 pub struct McPixel {
@@ -106,7 +110,7 @@ impl McShading {
         let inv_n = 1.0 / settings.spp.max(1) as f32;
         // Pixels in chunks, each filling one sample list (no allocation per pixel, and none of
         // the size of all samples: at 16 spp a view's samples take tens of MB).
-        let per_chunk: Vec<(Vec<Option<[f32; 3]>>, Vec<(u32, u32)>, Vec<Stored>, RayCount)> = pixels
+        let per_chunk: Vec<ChunkSamples> = pixels
             .par_chunks(PREPARE_CHUNK)
             .enumerate()
             .map(|(c, chunk)| {
