@@ -1,45 +1,89 @@
-//! Render speed: ms per 256² frame for the G-buffer, split-sum and Monte Carlo shading at 1/4/16
-//! spp with and without shadows, and rays per second. Uses the hotdog's ground-truth mesh
-//! (66k triangles) when ../shared is present, else the embedded default scene's mesh.
+//! Render speed on the hotdog's ground-truth mesh (66k triangles; the embedded default scene's
+//! mesh when the shared data is missing): ms per 256² frame for the G-buffer, split-sum and Monte
+//! Carlo shading at 1/4/16 spp with and without shadows and bounces, the rays each frame traced
+//! (counted by the renderer: `render::ray_count`) and secondary rays per second; then how the cost
+//! grows, a sweep over resolution (64² to 512², 4 spp) and spp (1 to 64, 128²) with direct light
+//! and shadows, each step's cost ratio shown per doubling of pixels × samples.
 //!
-//!     cargo run --release --example bench_render
+//!     cargo run --release --example bench_render [-- --json]
+//!
+//! `--json` prints one object `{"rows": [...]}`; each row has `stage`, `spp`, `bounces`,
+//! `ms_per_frame`, `secondary_mrays_per_s` and the raw counts.
 
 use std::time::Instant;
 
+use clap::Parser;
 use reconstruct::geometry::bvh::Bvh;
 use reconstruct::geometry::ground_truth::load_ground_truth;
 use reconstruct::light::CubeMap;
 use reconstruct::render::effects::Effects;
 use reconstruct::render::gbuffer::GBuffer;
 use reconstruct::render::montecarlo::{self, McSettings};
+use reconstruct::render::ray_count::RayCount;
 use reconstruct::render::splitsum;
 use reconstruct::render::view::{ray_epsilon, PreparedLight};
 use reconstruct::scene::default_scene;
 use reconstruct::scene::spec::shared_dir;
 use reconstruct::scene::Camera;
+use serde_json::json;
 
 #[global_allocator]
 static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
 
-/// Median wall time of `runs` calls, in milliseconds.
-fn time_ms<T>(runs: usize, mut f: impl FnMut() -> T) -> f64 {
+#[derive(Parser)]
+struct Args {
+    /// Print one JSON object instead of tables.
+    #[arg(long)]
+    json: bool,
+}
+
+/// Median wall time of `runs` calls, in milliseconds, and the last call's value.
+fn time_ms<T>(runs: usize, mut f: impl FnMut() -> T) -> (f64, T) {
+    let mut last = None;
     let mut times: Vec<f64> = (0..runs)
         .map(|_| {
             let t = Instant::now();
-            std::hint::black_box(f());
-            t.elapsed().as_secs_f64() * 1e3
+            let v = std::hint::black_box(f());
+            let ms = t.elapsed().as_secs_f64() * 1e3;
+            last = Some(v);
+            ms
         })
         .collect();
     times.sort_by(|a, b| a.total_cmp(b));
-    times[runs / 2]
+    (times[runs / 2], last.expect("runs > 0"))
+}
+
+/// One measured setting.
+struct Row {
+    stage: String,
+    width: usize,
+    spp: u32,
+    bounces: u32,
+    ms: f64,
+    rays: RayCount,
+}
+
+impl Row {
+    fn secondary_mrays(&self) -> f64 {
+        self.rays.secondary_mrays_per_s(self.ms / 1e3)
+    }
+
+    fn json(&self) -> serde_json::Value {
+        json!({
+            "stage": self.stage, "resolution": self.width, "spp": self.spp, "bounces": self.bounces,
+            "ms_per_frame": self.ms, "secondary_mrays_per_s": self.secondary_mrays(),
+            "primary_rays": self.rays.primary, "shadow_rays": self.rays.shadow, "bounce_rays": self.rays.bounce,
+        })
+    }
 }
 
 fn main() -> anyhow::Result<()> {
+    let args = Args::parse();
     let gt = shared_dir().join("data/nerfactor/hotdog_2163/gt");
     let (mesh, what) = if gt.exists() {
         (load_ground_truth(&gt)?, "hotdog ground truth")
     } else {
-        println!("note: {} not found; benchmarking the embedded default scene instead", gt.display());
+        eprintln!("note: {} not found; benchmarking the embedded default scene instead", gt.display());
         (default_scene::mesh(), "embedded default scene")
     };
     let probe = reconstruct::image::io::read_probe(&default_scene::fixture_probe_dir().join("courtyard.hdr"))?;
@@ -49,33 +93,78 @@ fn main() -> anyhow::Result<()> {
     let build_ms = t_build.elapsed().as_secs_f64() * 1e3;
     light.split_sum();
     light.sampler();
-    let cam = Camera::look_at(glam::Vec3::new(2.5, -2.6, 2.0), glam::Vec3::ZERO, glam::Vec3::Z, 0.6911, 256, 256);
-    let gbuf = GBuffer::trace(&mesh, &bvh, &cam);
+    let camera = |res: usize| Camera::look_at(glam::Vec3::new(2.5, -2.6, 2.0), glam::Vec3::ZERO, glam::Vec3::Z, 0.6911, res, res);
+    let scene = montecarlo::TraceScene { mesh: &mesh, bvh: &bvh, materials: &mesh };
+    let eps = ray_epsilon(&mesh);
+    let mut rows = Vec::new();
+
+    // Fixed 256² frame: every stage.
+    let gbuf = GBuffer::trace(&mesh, &bvh, &camera(256));
     let params = gbuf.material_params(&mesh);
     let covered = gbuf.surfels.iter().filter(|s| s.is_some()).count();
-
-    println!("# Render benchmark: {what}, {} triangles, 256x256, {covered} covered pixels, {} rayon threads", mesh.triangles.len(), rayon::current_num_threads());
-    println!("BVH build: {build_ms:.1} ms\n");
-    println!("| stage | ms / frame | Mrays/s |");
-    println!("|---|---:|---:|");
-    let g_ms = time_ms(9, || GBuffer::trace(&mesh, &bvh, &cam));
-    println!("| G-buffer (primary rays) | {g_ms:.2} | {:.2} |", (256.0 * 256.0) / g_ms / 1e3);
+    let (g_ms, g) = time_ms(9, || GBuffer::trace(&mesh, &bvh, &camera(256)));
+    rows.push(Row { stage: "gbuffer".into(), width: 256, spp: 1, bounces: 0, ms: g_ms, rays: g.rays() });
     let (ss, lut) = light.split_sum();
-    let s_ms = time_ms(9, || splitsum::shade(&gbuf, &params, ss, lut, Effects::DIRECT));
-    println!("| split-sum shading | {s_ms:.2} | - |");
-    let scene = montecarlo::TraceScene { mesh: &mesh, bvh: &bvh, materials: &mesh };
+    let (s_ms, _) = time_ms(9, || splitsum::shade(&gbuf, &params, ss, lut, Effects::DIRECT));
+    rows.push(Row { stage: "splitsum".into(), width: 256, spp: 0, bounces: 0, ms: s_ms, rays: RayCount::ZERO });
     let no_shadows = Effects { shadows: false, specular: true, indirect_bounces: 0 };
-    let effects = [("shadows off", no_shadows), ("shadows on", Effects::DIRECT), ("1 bounce", Effects::with_bounces(1)), ("3 bounces", Effects::with_bounces(3))];
+    let effects = [("mc_no_shadows", no_shadows), ("mc_direct", Effects::DIRECT), ("mc_bounces", Effects::with_bounces(1)), ("mc_bounces", Effects::with_bounces(3))];
     for spp in [1u32, 4, 16] {
-        for (name, effects) in effects {
-            let settings = McSettings { spp, seed: 1, effects, ray_epsilon: ray_epsilon(&mesh) };
+        for (stage, effects) in effects {
+            let settings = McSettings { spp, seed: 1, effects, ray_epsilon: eps };
             let runs = if spp == 16 { 3 } else { 5 };
-            let mut rays = 0;
-            let ms = time_ms(runs, || rays = montecarlo::shade(&gbuf, &params, light.sampler(), &scene, &settings, 0).shadow_rays);
-            let mrays = if effects.shadows { format!("{:.2}", rays as f64 / ms / 1e3) } else { "-".into() };
-            println!("| MC {spp:>2} spp, {name} | {ms:.2} | {mrays} |");
+            let (ms, out) = time_ms(runs, || montecarlo::shade(&gbuf, &params, light.sampler(), &scene, &settings, 0));
+            rows.push(Row { stage: stage.into(), width: 256, spp, bounces: effects.indirect_bounces, ms, rays: out.rays });
         }
     }
-    println!("\nMrays/s for MC counts the rays after the primary ones: shadow rays (one per strategy and sample) and, with bounces, the rays of the paths' later vertices.");
+
+    // Growth sweep: direct light with shadows.
+    let mut sweep = Vec::new();
+    let sweep_row = |res: usize, spp: u32| {
+        let g = GBuffer::trace(&mesh, &bvh, &camera(res));
+        let p = g.material_params(&mesh);
+        let settings = McSettings { spp, seed: 1, effects: Effects::DIRECT, ray_epsilon: eps };
+        let (ms, out) = time_ms(3, || montecarlo::shade(&g, &p, light.sampler(), &scene, &settings, 0));
+        Row { stage: "sweep_mc_direct".into(), width: res, spp, bounces: 0, ms, rays: out.rays }
+    };
+    let by_resolution: Vec<Row> = [64, 128, 256, 512].into_iter().map(|r| sweep_row(r, 4)).collect();
+    let by_spp: Vec<Row> = [1, 2, 4, 8, 16, 32, 64].into_iter().map(|s| sweep_row(128, s)).collect();
+    // Cost ratio per doubling of pixels × samples between consecutive settings.
+    for series in [&by_resolution, &by_spp] {
+        for (k, r) in series.iter().enumerate() {
+            let per_doubling = (k > 0).then(|| {
+                let prev = &series[k - 1];
+                let work = |r: &Row| (r.width * r.width) as f64 * r.spp as f64;
+                (r.ms / prev.ms).powf(1.0 / (work(r) / work(prev)).log2())
+            });
+            sweep.push((r, per_doubling));
+        }
+    }
+
+    if args.json {
+        let mut out: Vec<serde_json::Value> = rows.iter().map(Row::json).collect();
+        for (r, ratio) in &sweep {
+            let mut v = r.json();
+            v["cost_ratio_per_doubling"] = json!(ratio);
+            out.push(v);
+        }
+        println!("{}", json!({ "scene": what, "triangles": mesh.triangles.len(), "covered_pixels_256": covered, "threads": rayon::current_num_threads(), "bvh_build_ms": build_ms, "rows": out }));
+        return Ok(());
+    }
+    println!("# Render benchmark: {what}, {} triangles, 256x256, {covered} covered pixels, {} rayon threads", mesh.triangles.len(), rayon::current_num_threads());
+    println!("BVH build: {build_ms:.1} ms\n");
+    println!("| stage | spp | bounces | ms / frame | primary rays | shadow rays | bounce rays | secondary Mrays/s |");
+    println!("|---|---:|---:|---:|---:|---:|---:|---:|");
+    for r in &rows {
+        let mrays = if r.rays.secondary() > 0 { format!("{:.2}", r.secondary_mrays()) } else { "-".into() };
+        println!("| {} | {} | {} | {:.2} | {} | {} | {} | {mrays} |", r.stage, r.spp, r.bounces, r.ms, r.rays.primary, r.rays.shadow, r.rays.bounce);
+    }
+    println!("\nCost growth, Monte Carlo with direct light and shadows (the ratio is per doubling of pixels × spp; 2.0 is linear):\n");
+    println!("| resolution | spp | ms / frame | secondary Mrays/s | cost ratio per doubling |");
+    println!("|---:|---:|---:|---:|---:|");
+    for (r, ratio) in &sweep {
+        println!("| {0}² | {1} | {2:.2} | {3:.2} | {4} |", r.width, r.spp, r.ms, r.secondary_mrays(), ratio.map_or("-".into(), |x| format!("{x:.2}")));
+    }
+    println!("\nRays are counted by the renderer (render::ray_count): shadow rays are any-hit occlusion tests, bounce rays the closest-hit rays of interreflection paths.");
     Ok(())
 }

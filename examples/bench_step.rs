@@ -4,7 +4,13 @@
 //! (`llvm_ad_rgb`, `prb` at max_depth 2 and 5) on the same mesh, textures, light and resolution
 //! (tools/mitsuba/gradient_step.py; skipped with a note when Mitsuba or its LLVM is missing).
 //!
-//! cargo run --release --example bench_step [-- --scene nerfactor_hotdog --steps 10 --no-mitsuba]
+//! Each row also gives the rays a step traced (counted by the renderer, `render::ray_count`: the
+//! tally's growth over the step) and secondary rays per second of the whole step.
+//!
+//! cargo run --release --example bench_step [-- --scene nerfactor_hotdog --steps 10 --no-mitsuba --json]
+//!
+//! `--json` prints one object `{"rows": [...]}` to stdout (notes go to stderr): per setting `mode`,
+//! `spp`, `bounces`, `reconstruct_s` (median), the ray counts, and `mitsuba_s` only where Mitsuba ran.
 
 use std::path::PathBuf;
 use std::process::Command;
@@ -23,6 +29,7 @@ use reconstruct::jobs::render::ground_truth_mesh;
 use reconstruct::light::CubeMap;
 use reconstruct::material::texture_maps::MaterialTextures;
 use reconstruct::render::effects::Effects;
+use reconstruct::render::ray_count::{self, RayCount};
 use reconstruct::render::view::ShadingMode;
 
 #[global_allocator]
@@ -41,6 +48,9 @@ struct Args {
     light_res: usize,
     #[arg(long)]
     no_mitsuba: bool,
+    /// Print one JSON object (rows of mode, spp, bounces, reconstruct_s, ...) instead of tables.
+    #[arg(long)]
+    json: bool,
 }
 
 fn median(mut v: Vec<f64>) -> f64 {
@@ -53,7 +63,9 @@ fn main() -> Result<()> {
     let prepared = prepare(&args.scene, None, GeometrySource::GroundTruth, &GeometryPassConfig::default(), &FitConfig { texture_res: args.texture_res, ..FitConfig::default() }, 1, false)?;
     // One view, the first training view, as the Mitsuba script uses.
     let view = prepared.views[0].clone();
-    println!(
+    // Tables and notes go to stdout, or to stderr when stdout carries the JSON.
+    let say = |text: String| if args.json { eprintln!("{text}") } else { println!("{text}") };
+    say(format!(
         "scene {}: view {} ({}×{}, {} covered pixels), textures {}², light 6×{}², the scene's effects: {}",
         prepared.spec.name,
         view.name,
@@ -63,7 +75,7 @@ fn main() -> Result<()> {
         args.texture_res,
         args.light_res,
         prepared.effects.to_string().lines().next().unwrap_or_default()
-    );
+    ));
     // Both sides start from the same values: ground-truth materials baked into the atlas and the
     // training probe as the light.
     let textures = MaterialTextures::bake_from(&ground_truth_mesh(&prepared.spec)?, &prepared.atlas, args.texture_res)?;
@@ -83,41 +95,81 @@ fn main() -> Result<()> {
         let mut ctx = shading_context(&prepared, &config);
         ctx.effects = effects;
         let mut fit = Fit::new(config.clone(), Parameters::from_values(&textures, &light)?, vec![view.clone()], ctx)?;
-        let mut times = Vec::new();
+        let (mut times, mut rays) = (Vec::new(), RayCount::ZERO);
         for k in 0..=args.steps {
-            let t = Instant::now();
+            let (t, before) = (Instant::now(), ray_count::traced_so_far());
             match fit.step() {
                 Ok(_) => {}
                 Err(e) => {
-                    println!("{name}: {e:#}");
+                    say(format!("{name}: {e:#}"));
                     break;
                 }
             }
             if k > 0 {
                 times.push(t.elapsed().as_secs_f64());
+                rays += ray_count::traced_so_far() - before;
             }
         }
         if !times.is_empty() {
-            rows.push((name, spp, depth, median(times)));
+            // Rays of the mean step (steps draw new samples, so counts vary a little).
+            let n = times.len() as u64;
+            let per_step = RayCount { primary: rays.primary / n, shadow: rays.shadow / n, bounce: rays.bounce / n };
+            rows.push(Row { name, mode, spp, bounces: effects.indirect_bounces, depth, secs: median(times), rays: per_step });
         }
     }
-    let mitsuba = if args.no_mitsuba { None } else { run_mitsuba(&prepared, &textures, &light, &args).map_err(|e| println!("Mitsuba: skipped ({e:#})")).ok() };
-    println!("\n| step (render + backward + Adam), 1 view | reconstruct (s) | Mitsuba 3 llvm_ad_rgb prb (s) |\n|---|---:|---:|");
+    let mitsuba = if args.no_mitsuba { None } else { run_mitsuba(&prepared, &textures, &light, &args).map_err(|e| say(format!("Mitsuba: skipped ({e:#})"))).ok() };
     let mitsuba_step = |depth: u32, spp: u32, key: &str| mitsuba.as_ref().and_then(|m: &serde_json::Value| m["max_depth"][depth.to_string()][spp.to_string()][key].as_f64());
-    for (name, spp, depth, secs) in &rows {
-        let m = depth.and_then(|d| mitsuba_step(d, *spp, "median_s"));
-        let label = depth.map_or(String::new(), |d| format!(" (max_depth {d})"));
-        println!("| {name} | {secs:.3} | {}{label} |", m.map_or("–".into(), |v| format!("{v:.3}")));
+    if args.json {
+        let out: Vec<serde_json::Value> = rows
+            .iter()
+            .map(|r| {
+                let mode = match r.mode {
+                    ShadingMode::SplitSum => "splitsum",
+                    ShadingMode::MonteCarlo => "montecarlo",
+                };
+                let mut v = serde_json::json!({
+                    "mode": mode, "spp": r.spp, "bounces": r.bounces, "reconstruct_s": r.secs,
+                    "primary_rays": r.rays.primary, "shadow_rays": r.rays.shadow, "bounce_rays": r.rays.bounce,
+                    "secondary_mrays_per_s": r.rays.secondary_mrays_per_s(r.secs),
+                });
+                if let Some((d, m)) = r.depth.and_then(|d| mitsuba_step(d, r.spp, "median_s").map(|m| (d, m))) {
+                    v["mitsuba_s"] = serde_json::json!(m);
+                    v["mitsuba_max_depth"] = serde_json::json!(d);
+                }
+                v
+            })
+            .collect();
+        println!("{}", serde_json::json!({ "scene": prepared.spec.name, "view": view.name, "covered_pixels": view.len(), "steps": args.steps, "threads": rayon::current_num_threads(), "rows": out }));
+        return Ok(());
+    }
+    println!("\n| step (render + backward + Adam), 1 view | reconstruct (s) | secondary rays / step | secondary Mrays/s | Mitsuba 3 llvm_ad_rgb prb (s) |\n|---|---:|---:|---:|---:|");
+    for r in &rows {
+        let m = r.depth.and_then(|d| mitsuba_step(d, r.spp, "median_s"));
+        let label = r.depth.map_or(String::new(), |d| format!(" (max_depth {d})"));
+        let mrays = if r.rays.secondary() > 0 { format!("{:.2}", r.rays.secondary_mrays_per_s(r.secs)) } else { "–".into() };
+        println!("| {} | {:.3} | {} | {mrays} | {}{label} |", r.name, r.secs, r.rays.secondary(), m.map_or("–".into(), |v| format!("{v:.3}")));
     }
     if let Some(m) = &mitsuba {
         println!("\nMitsuba {} ({}, {} threads); first step incl. JIT (s):", m["mitsuba_version"].as_str().unwrap_or("?"), m["variant"].as_str().unwrap_or("?"), m["threads"]);
-        for (_, spp, depth, _) in &rows {
-            if let Some(d) = depth {
-                println!("  max_depth {d}, {spp} spp: {:.2}", mitsuba_step(*d, *spp, "first_s").unwrap_or(f64::NAN));
+        for r in &rows {
+            if let Some(d) = r.depth {
+                println!("  max_depth {d}, {} spp: {:.2}", r.spp, mitsuba_step(d, r.spp, "first_s").unwrap_or(f64::NAN));
             }
         }
     }
     Ok(())
+}
+
+/// One measured setting: median step time and the rays of a step.
+struct Row {
+    name: String,
+    mode: ShadingMode,
+    spp: u32,
+    bounces: u32,
+    /// Mitsuba's max_depth for the same light transport (None: not compared).
+    depth: Option<u32>,
+    secs: f64,
+    rays: RayCount,
 }
 
 /// Writes the step's inputs (atlas mesh with ground-truth-baked textures, the training light,

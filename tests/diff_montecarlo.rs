@@ -80,7 +80,9 @@ fn forward_matches_the_renderer_with_and_without_shadows_and_bounces() -> anyhow
         let params: Vec<Option<SurfaceParams>> =
             g.surfels.iter().enumerate().map(|(i, s)| s.map(|_| SurfaceParams { kd: Vec3::from_array(kd[i]), roughness: ks[i][1], metallic: ks[i][2] })).collect();
         let reference = shade(&g, &params, &LightSampler::new(&light), &trace, &s, 0);
-        assert_eq!(op.shadow_rays, reference.shadow_rays);
+        assert_eq!(op.rays, reference.rays);
+        assert_eq!(op.rays.shadow > 0, shadows, "{:?}", op.rays);
+        assert_eq!(op.rays.bounce > 0, bounces > 0, "{:?}", op.rays);
         assert_eq!(op.surface_samples > 0, bounces > 0, "{} samples from the surface with {bounces} bounces", op.surface_samples);
         let mut covered = 0;
         for (i, row) in out.iter().enumerate() {

@@ -142,3 +142,58 @@ fn rays_through_degenerate_triangles_stay_finite() {
         }
     }
 }
+
+/// The node test `Bvh` picks at run time (8-wide AVX2 where available) returns the hits of obvhs'
+/// own test: same triangle, t within 1e-5 relative, same occlusion answers, on random rays, rays
+/// with ±0.0 components, rays running along triangle edges and through degenerate triangles.
+#[test]
+fn wide_node_test_returns_the_scalar_hits() {
+    let mut rng = Pcg64::seed_from_u64(9);
+    let (mesh, _) = random_mesh(&mut rng, 3000);
+    let bvh = Bvh::build(&mesh);
+    if !bvh.uses_wide_node_test() {
+        eprintln!("no AVX2 here: closest_hit already is the scalar path");
+    }
+    let mut rays: Vec<(Vec3, Vec3, f32)> = Vec::new();
+    for i in 0..6000 {
+        let o = Vec3::new(rng.random_range(-1.5..1.5), rng.random_range(-1.5..1.5), rng.random_range(-1.5..1.5));
+        let mut d = random_unit(&mut rng);
+        // Zero and negative-zero components.
+        match i % 8 {
+            1 => d.x = 0.0,
+            2 => d.y = -0.0,
+            3 => d = Vec3::new(-0.0, 0.0, -1.0),
+            _ => {}
+        }
+        let tmax = if i % 3 == 0 { rng.random_range(0.05..2.0) } else { f32::INFINITY };
+        rays.push((o, d, tmax));
+    }
+    // Along edges: start before a vertex and run along the edge to the next one, and just beside it.
+    for t in (0..mesh.triangles.len()).step_by(7) {
+        let [p0, p1, p2] = mesh.triangle_positions(t);
+        for (a, b) in [(p0, p1), (p1, p2), (p2, p0)] {
+            let e = b - a;
+            if e.length_squared() > 0.0 {
+                rays.push((a - 0.5 * e, e, f32::INFINITY));
+                rays.push((a - 0.5 * e + 1e-7 * (p2 - p0), e, f32::INFINITY));
+                // Across the edge's midpoint from above.
+                rays.push((0.5 * (a + b) + Vec3::Z, -Vec3::Z, f32::INFINITY));
+            }
+        }
+    }
+    let mut hits = 0;
+    for (i, &(o, d, tmax)) in rays.iter().enumerate() {
+        let (got, want) = (bvh.closest_hit(o, d, 1e-4, tmax), bvh.closest_hit_scalar(o, d, 1e-4, tmax));
+        match (got, want) {
+            (None, None) => {}
+            (Some(g), Some(w)) => {
+                hits += 1;
+                assert_eq!(g.triangle, w.triangle, "ray {i}: {g:?} vs {w:?}");
+                assert!((g.t - w.t).abs() <= 1e-5 * w.t.abs(), "ray {i}: t {} vs {}", g.t, w.t);
+            }
+            (g, w) => panic!("ray {i}: wide {g:?}, scalar {w:?}"),
+        }
+        assert_eq!(bvh.any_hit(o, d, 1e-4, tmax), bvh.any_hit_scalar(o, d, 1e-4, tmax), "ray {i}: any_hit differs");
+    }
+    assert!(hits > rays.len() / 5 && hits < rays.len(), "{hits} hits of {} rays", rays.len());
+}

@@ -3,17 +3,22 @@
 //! obvhs reports leaf primitives as indices into its own `primitive_indices`; we store the
 //! triangles already permuted into that order (so the hot loop reads memory linearly) together
 //! with their index in the mesh's triangle list, which is what [`Hit::triangle`] returns.
+//!
+//! Node tests: on CPUs with AVX2 the traversal tests a node's 8 children in one pass
+//! ([`super::bvh_wide`]); elsewhere it uses obvhs' SSE test. Both give the same hit masks, so the
+//! hits are identical; `closest_hit_scalar` / `any_hit_scalar` keep obvhs' test for comparison.
 
 use std::time::Duration;
 
 use glam::{UVec2, Vec2, Vec3, Vec3A};
 use obvhs::cwbvh::builder::build_cwbvh_from_tris;
+use obvhs::cwbvh::node::CwBvhNode;
 use obvhs::cwbvh::CwBvh;
 use obvhs::ray::Ray;
 use obvhs::triangle::Triangle;
 use obvhs::BvhBuildParams;
 
-use super::Mesh;
+use super::{bvh_wide, Mesh};
 
 /// A ray/triangle intersection.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -85,6 +90,45 @@ pub struct Bvh {
     triangles: Vec<PackedTriangle>,
     /// Mesh triangle index of each entry of `triangles`.
     triangle_ids: Vec<u32>,
+    /// Test nodes 8 children wide (AVX2 detected at build time).
+    wide: bool,
+}
+
+/// Closest-hit traversal with the node test `$test(node, &ray, oct_inv4)`: (primitive slot, t, b1, b2).
+macro_rules! closest_traversal {
+    ($self:expr, $bvh:expr, $o:expr, $d:expr, $tmin:expr, $tmax:expr, $test:path) => {{
+        let mut ray = Ray::new($o, $d, $tmin, $tmax);
+        let mut best: Option<(u32, f32, f32, f32)> = None;
+        let mut state = $bvh.new_traversal(ray.direction);
+        let mut node;
+        obvhs::traverse!($bvh, node, state, $test(node, &ray, state.oct_inv4), {
+            let k = state.primitive_id as usize;
+            if let Some((t, b1, b2)) = intersect_packed(&$self.triangles[k], $o, $d, $tmin, ray.tmax) {
+                best = Some((k as u32, t, b1, b2));
+                ray.tmax = t; // shrink so farther boxes and triangles are culled
+            }
+        });
+        best
+    }};
+}
+
+/// Any-hit traversal with the node test `$test`: stops at the first hit on the segment.
+macro_rules! any_traversal {
+    ($self:expr, $bvh:expr, $o:expr, $d:expr, $tmin:expr, $tmax:expr, $test:path) => {{
+        let ray = Ray::new($o, $d, $tmin, $tmax);
+        let mut state = $bvh.new_traversal(ray.direction);
+        let mut node;
+        // The macro runs the primitive block inside its own inner loop, so a plain `break` would
+        // only leave that loop; break out of the labelled block to stop the whole traversal.
+        'traversal: {
+            obvhs::traverse!($bvh, node, state, $test(node, &ray, state.oct_inv4), {
+                if intersect_packed(&$self.triangles[state.primitive_id as usize], $o, $d, $tmin, $tmax).is_some() {
+                    break 'traversal true;
+                }
+            });
+            false
+        }
+    }};
 }
 
 impl Bvh {
@@ -106,7 +150,7 @@ impl Bvh {
             }
         }
         if tris.is_empty() {
-            return Bvh { cwbvh: None, triangles: Vec::new(), triangle_ids: Vec::new() };
+            return Bvh { cwbvh: None, triangles: Vec::new(), triangle_ids: Vec::new(), wide: false };
         }
         let cwbvh = build_cwbvh_from_tris(&tris, params, &mut Duration::default());
         let triangles = cwbvh
@@ -118,7 +162,12 @@ impl Bvh {
             })
             .collect();
         let triangle_ids = cwbvh.primitive_indices.iter().map(|&i| ids[i as usize]).collect();
-        Bvh { cwbvh: Some(cwbvh), triangles, triangle_ids }
+        Bvh { cwbvh: Some(cwbvh), triangles, triangle_ids, wide: bvh_wide::available() }
+    }
+
+    /// Whether queries test nodes 8 children wide (AVX2) rather than with obvhs' SSE test.
+    pub fn uses_wide_node_test(&self) -> bool {
+        self.wide
     }
 
     /// Number of (non-degenerate) triangles referenced by the leaves.
@@ -128,45 +177,75 @@ impl Bvh {
 
     /// The nearest hit with t in [tmin, tmax] along `origin + t·dir` (dir need not be unit).
     pub fn closest_hit(&self, origin: Vec3, dir: Vec3, tmin: f32, tmax: f32) -> Option<Hit> {
+        self.closest_hit_impl(origin, dir, tmin, tmax, self.wide)
+    }
+
+    /// [`Self::closest_hit`] with obvhs' own node test (the reference the wide test must match).
+    pub fn closest_hit_scalar(&self, origin: Vec3, dir: Vec3, tmin: f32, tmax: f32) -> Option<Hit> {
+        self.closest_hit_impl(origin, dir, tmin, tmax, false)
+    }
+
+    /// Whether anything lies on the segment t in [tmin, tmax] (occlusion; stops at the first hit).
+    pub fn any_hit(&self, origin: Vec3, dir: Vec3, tmin: f32, tmax: f32) -> bool {
+        self.any_hit_impl(origin, dir, tmin, tmax, self.wide)
+    }
+
+    /// [`Self::any_hit`] with obvhs' own node test.
+    pub fn any_hit_scalar(&self, origin: Vec3, dir: Vec3, tmin: f32, tmax: f32) -> bool {
+        self.any_hit_impl(origin, dir, tmin, tmax, false)
+    }
+
+    fn closest_hit_impl(&self, origin: Vec3, dir: Vec3, tmin: f32, tmax: f32, wide: bool) -> Option<Hit> {
         let bvh = self.cwbvh.as_ref()?;
         if !(origin.is_finite() && dir.is_finite()) || dir == Vec3::ZERO {
             return None;
         }
         let (o, d) = (Vec3A::from(origin), positive_zeros(dir));
-        let mut ray = Ray::new(o, d, tmin, tmax);
-        let mut best: Option<(u32, f32, f32, f32)> = None;
-        let mut state = bvh.new_traversal(ray.direction);
-        let mut node;
-        obvhs::traverse!(bvh, node, state, node.intersect_ray(&ray, state.oct_inv4), {
-            let k = state.primitive_id as usize;
-            if let Some((t, b1, b2)) = intersect_packed(&self.triangles[k], o, d, tmin, ray.tmax) {
-                best = Some((k as u32, t, b1, b2));
-                ray.tmax = t; // shrink so farther boxes and triangles are culled
-            }
-        });
+        let best = if wide { self.closest_wide(bvh, o, d, tmin, tmax) } else { closest_traversal!(self, bvh, o, d, tmin, tmax, CwBvhNode::intersect_ray) };
         best.map(|(k, t, b1, b2)| Hit { triangle: self.triangle_ids[k as usize], t, bary: Vec2::new(b1, b2) })
     }
 
-    /// Whether anything lies on the segment t in [tmin, tmax] (occlusion; stops at the first hit).
-    pub fn any_hit(&self, origin: Vec3, dir: Vec3, tmin: f32, tmax: f32) -> bool {
+    fn any_hit_impl(&self, origin: Vec3, dir: Vec3, tmin: f32, tmax: f32, wide: bool) -> bool {
         let Some(bvh) = self.cwbvh.as_ref() else { return false };
         if !(origin.is_finite() && dir.is_finite()) || dir == Vec3::ZERO {
             return false;
         }
         let (o, d) = (Vec3A::from(origin), positive_zeros(dir));
-        let ray = Ray::new(o, d, tmin, tmax);
-        let mut state = bvh.new_traversal(ray.direction);
-        let mut node;
-        // The macro runs the primitive block inside its own inner loop, so a plain `break` would
-        // only leave that loop; break out of the labelled block to stop the whole traversal.
-        'traversal: {
-            obvhs::traverse!(bvh, node, state, node.intersect_ray(&ray, state.oct_inv4), {
-                if intersect_packed(&self.triangles[state.primitive_id as usize], o, d, tmin, tmax).is_some() {
-                    break 'traversal true;
-                }
-            });
-            false
+        if wide {
+            self.any_wide(bvh, o, d, tmin, tmax)
+        } else {
+            any_traversal!(self, bvh, o, d, tmin, tmax, CwBvhNode::intersect_ray)
         }
+    }
+
+    /// Only called when `self.wide`, i.e. AVX2 was detected.
+    fn closest_wide(&self, bvh: &CwBvh, o: Vec3A, d: Vec3A, tmin: f32, tmax: f32) -> Option<(u32, f32, f32, f32)> {
+        #[cfg(target_arch = "x86_64")]
+        {
+            #[target_feature(enable = "avx2")]
+            fn run(this: &Bvh, bvh: &CwBvh, o: Vec3A, d: Vec3A, tmin: f32, tmax: f32) -> Option<(u32, f32, f32, f32)> {
+                closest_traversal!(this, bvh, o, d, tmin, tmax, bvh_wide::intersect_node)
+            }
+            // SAFETY: `wide` is set only where `bvh_wide::available()` found AVX2.
+            unsafe { run(self, bvh, o, d, tmin, tmax) }
+        }
+        #[cfg(not(target_arch = "x86_64"))]
+        closest_traversal!(self, bvh, o, d, tmin, tmax, CwBvhNode::intersect_ray)
+    }
+
+    /// Only called when `self.wide`, i.e. AVX2 was detected.
+    fn any_wide(&self, bvh: &CwBvh, o: Vec3A, d: Vec3A, tmin: f32, tmax: f32) -> bool {
+        #[cfg(target_arch = "x86_64")]
+        {
+            #[target_feature(enable = "avx2")]
+            fn run(this: &Bvh, bvh: &CwBvh, o: Vec3A, d: Vec3A, tmin: f32, tmax: f32) -> bool {
+                any_traversal!(this, bvh, o, d, tmin, tmax, bvh_wide::intersect_node)
+            }
+            // SAFETY: `wide` is set only where `bvh_wide::available()` found AVX2.
+            unsafe { run(self, bvh, o, d, tmin, tmax) }
+        }
+        #[cfg(not(target_arch = "x86_64"))]
+        any_traversal!(self, bvh, o, d, tmin, tmax, CwBvhNode::intersect_ray)
     }
 }
 

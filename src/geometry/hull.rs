@@ -51,7 +51,7 @@ use crate::geometry::manifold::{check_closed_manifold, orient_consistently, sign
 use crate::geometry::mask_distance::MaskDistance;
 use crate::geometry::{Mesh, Part};
 use crate::image::Image;
-use crate::material::{BaseColor, PartMaterial};
+use crate::material::{BaseColor, PartMaterial, Scalar};
 use crate::scene::Camera;
 
 /// One training view's silhouette.
@@ -755,7 +755,7 @@ fn hull_mesh(positions: Vec<Vec3>, triangles: Vec<[u32; 3]>) -> Mesh {
         positions,
         triangles,
         parts: vec![Part { name: "hull".into(), material: 0, has_uv: false }],
-        materials: vec![PartMaterial { name: "hull".into(), base_color: BaseColor::Constant(Vec3::splat(0.5)), roughness: 0.6, metallic: 0.0 }],
+        materials: vec![PartMaterial { name: "hull".into(), base_color: BaseColor::Constant(Vec3::splat(0.5)), roughness: Scalar::Constant(0.6), metallic: Scalar::Constant(0.0) }],
     };
     mesh.recompute_normals();
     mesh
@@ -925,7 +925,7 @@ mod tests {
     #[test]
     fn unseen_underside_is_closed_flat_and_bounded() {
         let mut b = MeshBuilder::new();
-        let part = b.part(PartMaterial { name: "disc".into(), base_color: BaseColor::Constant(Vec3::ONE), roughness: 0.5, metallic: 0.0 });
+        let part = b.part(PartMaterial { name: "disc".into(), base_color: BaseColor::Constant(Vec3::ONE), roughness: Scalar::Constant(0.5), metallic: Scalar::Constant(0.0) });
         let (radius, bottom, top) = (1.0, -0.1f32, 0.1);
         b.cylinder(part, Vec2::ZERO, radius, bottom, top, 96);
         let disc = b.build();

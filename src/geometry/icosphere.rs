@@ -8,7 +8,7 @@ use std::collections::HashMap;
 use glam::{Vec2, Vec3};
 
 use crate::geometry::{Mesh, Part};
-use crate::material::{BaseColor, PartMaterial};
+use crate::material::{BaseColor, PartMaterial, Scalar};
 
 /// A sphere of `radius` around `center`, the icosahedron's 20 faces each split into 4ⁿ for
 /// `subdivisions` = n (n = 3: 642 vertices, 1280 triangles). Outward-facing counter-clockwise
@@ -77,7 +77,7 @@ pub fn icosphere(center: Vec3, radius: f32, subdivisions: u32) -> Mesh {
         triangle_part: vec![0; tris.len()],
         triangles: tris,
         parts: vec![Part { name: "sphere".into(), material: 0, has_uv: false }],
-        materials: vec![PartMaterial { name: "grey".into(), base_color: BaseColor::Constant(Vec3::splat(0.5)), roughness: 0.6, metallic: 0.0 }],
+        materials: vec![PartMaterial { name: "grey".into(), base_color: BaseColor::Constant(Vec3::splat(0.5)), roughness: Scalar::Constant(0.6), metallic: Scalar::Constant(0.0) }],
     }
 }
 

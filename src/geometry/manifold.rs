@@ -206,7 +206,7 @@ pub fn signed_volume(mesh: &Mesh) -> f64 {
 mod tests {
     use super::*;
     use crate::geometry::primitives::MeshBuilder;
-    use crate::material::{BaseColor, PartMaterial};
+    use crate::material::{BaseColor, PartMaterial, Scalar};
     use glam::Vec3;
 
     fn tetrahedron() -> Mesh {
@@ -285,7 +285,7 @@ mod tests {
         // The UV sphere repeats its seam and pole vertices, so it is open as built: a real-world
         // mesh that the check must reject.
         let mut b = MeshBuilder::new();
-        let p = b.part(PartMaterial { name: "m".into(), base_color: BaseColor::Constant(Vec3::ONE), roughness: 0.5, metallic: 0.0 });
+        let p = b.part(PartMaterial { name: "m".into(), base_color: BaseColor::Constant(Vec3::ONE), roughness: Scalar::Constant(0.5), metallic: Scalar::Constant(0.0) });
         b.ellipsoid(p, Vec3::ZERO, Vec3::ONE, glam::Quat::IDENTITY, 16, 8);
         assert!(check_closed_manifold(&b.build()).is_err());
     }

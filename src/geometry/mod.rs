@@ -6,6 +6,7 @@
 pub mod atlas;
 pub mod bvh;
 pub mod closest_point;
+pub mod bvh_wide;
 pub mod gltf_io;
 pub mod hull;
 pub mod manifold;

@@ -93,7 +93,7 @@ pub fn run(opts: &LabelOptions) -> Result<LabelReport> {
             spec = spec.with_data_dir(d);
         }
         let dataset = spec.load_dataset()?;
-        let ctx = PriorContext { idarb_weights: opts.idarb_weights.clone(), cache_dir: cache_dir(), idarb: IdarbOptions::default(), seed: opts.seed, geometry: None };
+        let ctx = PriorContext { idarb_weights: opts.idarb_weights.clone(), cache_dir: cache_dir(), idarb: IdarbOptions::default(), seed: opts.seed };
         (spec, dataset, ctx)
     };
     let names: Vec<String> = dataset.train.iter().map(|v| v.name.clone()).collect();

@@ -113,7 +113,7 @@ pub fn face_solid_angles(res: usize) -> Vec<f32> {
 }
 
 /// Texel index of the texel containing (s, t) on `face`, clamped to the face.
-fn nearest_index(res: usize, face: usize, s: f32, t: f32) -> usize {
+pub(crate) fn nearest_index(res: usize, face: usize, s: f32, t: f32) -> usize {
     let to_k = |c: f32| ((((c + 1.0) * 0.5) * res as f32).floor().max(0.0) as usize).min(res - 1);
     face * res * res + to_k(t) * res + to_k(s)
 }

@@ -35,6 +35,7 @@ use crate::geometry::bvh::{Bvh, Hit};
 use crate::geometry::Mesh;
 use crate::image::Image;
 use crate::material::{MaterialField, SurfaceParams};
+use crate::render::ray_count::{self, RayCount};
 use crate::scene::camera::Camera;
 
 impl GBuffer {
@@ -58,7 +59,13 @@ impl GBuffer {
                 });
             }
         });
+        ray_count::record(RayCount { primary: (width * height) as u64, ..RayCount::ZERO });
         GBuffer { width, height, origin, surfels }
+    }
+
+    /// The rays [`GBuffer::trace`] traced for this buffer: one primary ray per pixel.
+    pub fn rays(&self) -> RayCount {
+        RayCount { primary: (self.width * self.height) as u64, ..RayCount::ZERO }
     }
 
     /// Per pixel: did the primary ray hit geometry.

@@ -7,6 +7,7 @@ pub mod montecarlo;
 pub mod montecarlo_op;
 pub mod sh_light;
 pub mod silhouette_op;
+pub mod ray_count;
 pub mod splitsum;
 pub mod splitsum_op;
 pub mod surface_op;

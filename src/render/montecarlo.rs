@@ -9,18 +9,25 @@
 //! the same sampler at that point with one sample of each strategy (next-event estimation plus a
 //! BSDF sample), recursively for the remaining bounces. Only BSDF sampling can find a surface, so
 //! such a sample's weight is 1/pdf (no MIS weight against the light, which cannot produce it).
+//!
+//! Work per sample is kept to what can change the result: no shadow ray for a direction below
+//! either horizon or with zero pdf, and at the vertices of bounce paths (whose radiance is a
+//! detached constant, so nothing is differentiated through it) none for a direction whose light
+//! is black either. At the pixel's own vertex a black texel still gets its ray: the light is a
+//! parameter, and the texel's gradient needs its visibility.
 
 use glam::Vec3;
 use rayon::prelude::*;
 
 use crate::geometry::bvh::Bvh;
 use crate::geometry::Mesh;
-use crate::light::sampler::LightSampler;
+use crate::light::sampler::{LightLookup, LightSampler};
 use crate::material::brdf::{self, COS_EPS};
 use crate::material::{MaterialField, SurfaceParams};
 use crate::math::Frame;
 use crate::render::effects::Effects;
 use crate::render::gbuffer::{GBuffer, Surfel};
+use crate::render::ray_count::{self, RayCount};
 use crate::rng::Sampler;
 
 #[derive(Clone, Copy, Debug)]
@@ -48,8 +55,9 @@ pub struct McBuffers {
     /// Specular radiance.
     pub specular: Vec<Vec3>,
     /// Rays traced after the primary ones: shadow rays, and bounce rays with interreflection (zero
-    /// when shadows are off: an effect that is off costs nothing).
-    pub shadow_rays: u64,
+    /// when shadows are off: an effect that is off costs nothing). The G-buffer's primary rays
+    /// are counted where it is traced.
+    pub rays: RayCount,
 }
 
 impl McBuffers {
@@ -87,8 +95,8 @@ fn specular_probability(p: &SurfaceParams, nov: f32, effects: Effects) -> f32 {
 /// Where a sample's incident radiance comes from.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Incident {
-    /// The environment light (a nearest-texel read of the cube map along `wi`).
-    Light,
+    /// The environment light: this texel of the cube map (the nearest-texel read along `wi`).
+    Light(u32),
     /// The object's own surface along `wi` (interreflection): an estimate of its outgoing radiance.
     Surface,
 }
@@ -116,9 +124,9 @@ pub fn local_outgoing(s: &Surfel, wo: Vec3) -> (Frame, Vec3) {
 }
 
 /// Draws one surfel's samples (`spp` of each strategy, balance heuristic) and hands each
-/// contributing one to `visit`; returns the rays traced (shadow rays and, with interreflection, the
-/// rays of the bounces below). The single sampling code path of the renderer and of the
-/// differentiable shader (`montecarlo_op`), so both see the same samples.
+/// contributing one to `visit`; returns the rays traced (shadow rays and, with interreflection,
+/// the bounce rays and the shadow rays of the vertices they reach). The single sampling code path
+/// of the renderer and of the differentiable shader (`montecarlo_op`), so both see the same samples.
 #[allow(clippy::too_many_arguments)] // the renderer's state for one surfel, passed as is
 pub fn draw_samples(
     s: &Surfel,
@@ -129,8 +137,8 @@ pub fn draw_samples(
     settings: &McSettings,
     rng: &mut Sampler,
     visit: &mut dyn FnMut(McSample),
-) -> u64 {
-    draw_samples_with_bounces(s, wo, p, light, scene, settings, settings.spp.max(1), settings.effects.indirect_bounces, rng, visit)
+) -> RayCount {
+    draw_samples_with_bounces(s, wo, p, light, scene, settings, settings.spp.max(1), settings.effects.indirect_bounces, false, rng, visit)
 }
 
 #[allow(clippy::too_many_arguments)]
@@ -143,9 +151,11 @@ fn draw_samples_with_bounces(
     settings: &McSettings,
     spp: u32,
     bounces_left: u32,
+    // A detached vertex (on a bounce path): samples of black light contribute exactly nothing.
+    detached: bool,
     rng: &mut Sampler,
     visit: &mut dyn FnMut(McSample),
-) -> u64 {
+) -> RayCount {
     let (frame, wo_l) = local_outgoing(s, wo);
     let nov = brdf::clamp_cos(wo_l.z);
     let alpha = brdf::alpha_from_roughness(p.roughness);
@@ -159,7 +169,7 @@ fn draw_samples_with_bounces(
     };
     let eps = settings.ray_epsilon;
     let origin = s.position + s.geo_normal * eps;
-    let mut rays = 0u64;
+    let mut rays = RayCount::ZERO;
     // Light arriving from behind the geometric surface is blocked by the surface itself.
     let above = |wi: Vec3| wi.dot(s.geo_normal) > 0.0;
     for k in 0..spp {
@@ -167,14 +177,14 @@ fn draw_samples_with_bounces(
         let (r0, r1) = rng.next_2d();
         let ls = light.sample(((k as f32 + r0) / spp as f32, r1));
         let wi_l = frame.to_local(ls.dir);
-        if ls.pdf > 0.0 && wi_l.z > 0.0 && above(ls.dir) {
+        if ls.pdf > 0.0 && wi_l.z > 0.0 && above(ls.dir) && !(detached && ls.radiance == Vec3::ZERO) {
             let visible = !settings.effects.shadows || {
-                rays += 1;
+                rays.shadow += 1;
                 !scene.bvh.any_hit(origin, ls.dir, eps, f32::INFINITY)
             };
             if visible {
                 let w = ls.pdf / (ls.pdf + bsdf_pdf(wi_l));
-                visit(McSample { wi: ls.dir, wi_l, radiance: ls.radiance, weight: w / ls.pdf, incident: Incident::Light });
+                visit(McSample { wi: ls.dir, wi_l, radiance: ls.radiance, weight: w / ls.pdf, incident: Incident::Light(ls.texel) });
             }
         }
         // BSDF sample.
@@ -189,18 +199,22 @@ fn draw_samples_with_bounces(
         if pdf_b <= 0.0 || !above(wi) {
             continue;
         }
-        let env = |wi: Vec3| McSample { wi, wi_l, radiance: light.radiance(wi), weight: pdf_b / (pdf_b + light.pdf(wi)) / pdf_b, incident: Incident::Light };
+        let env = |l: LightLookup| McSample { wi, wi_l, radiance: l.radiance, weight: pdf_b / (pdf_b + l.pdf) / pdf_b, incident: Incident::Light(l.texel) };
         if !settings.effects.shadows {
-            visit(env(wi));
+            visit(env(light.lookup(wi)));
         } else if bounces_left == 0 {
-            rays += 1;
+            let l = light.lookup(wi);
+            if detached && l.radiance == Vec3::ZERO {
+                continue;
+            }
+            rays.shadow += 1;
             if !scene.bvh.any_hit(origin, wi, eps, f32::INFINITY) {
-                visit(env(wi));
+                visit(env(l));
             }
         } else {
-            rays += 1;
+            rays.bounce += 1;
             match scene.bvh.closest_hit(origin, wi, eps, f32::INFINITY) {
-                None => visit(env(wi)),
+                None => visit(env(light.lookup(wi))),
                 Some(hit) => {
                     let y = Surfel::from_hit(scene.mesh, &hit, origin, wi);
                     let (radiance, r) = outgoing_radiance(&y, -wi, light, scene, settings, bounces_left - 1, rng);
@@ -215,11 +229,11 @@ fn draw_samples_with_bounces(
 
 /// One-sample estimate of the radiance surface point `y` sends along `wo` (direct light plus
 /// `bounces_left` further bounces); returns it with the rays traced.
-fn outgoing_radiance(y: &Surfel, wo: Vec3, light: &LightSampler, scene: &TraceScene, settings: &McSettings, bounces_left: u32, rng: &mut Sampler) -> (Vec3, u64) {
+fn outgoing_radiance(y: &Surfel, wo: Vec3, light: &LightSampler, scene: &TraceScene, settings: &McSettings, bounces_left: u32, rng: &mut Sampler) -> (Vec3, RayCount) {
     let p = y.material(scene.materials);
     let (_, wo_l) = local_outgoing(y, wo);
     let mut radiance = Vec3::ZERO;
-    let rays = draw_samples_with_bounces(y, wo, &p, light, scene, settings, 1, bounces_left, rng, &mut |smp| {
+    let rays = draw_samples_with_bounces(y, wo, &p, light, scene, settings, 1, bounces_left, true, rng, &mut |smp| {
         radiance += sample_radiance(&p, wo_l, &smp, settings.effects.specular);
     });
     (radiance, rays)
@@ -238,7 +252,7 @@ fn sample_radiance(p: &SurfaceParams, wo_l: Vec3, smp: &McSample, specular: bool
 /// Diffuse (demodulated) and specular estimates for one surfel, `spp` samples of each strategy.
 /// Returns (diffuse, specular, rays traced).
 #[allow(clippy::too_many_arguments)]
-pub fn shade_point(s: &Surfel, wo: Vec3, p: &SurfaceParams, light: &LightSampler, scene: &TraceScene, settings: &McSettings, rng: &mut Sampler) -> (Vec3, Vec3, u64) {
+pub fn shade_point(s: &Surfel, wo: Vec3, p: &SurfaceParams, light: &LightSampler, scene: &TraceScene, settings: &McSettings, rng: &mut Sampler) -> (Vec3, Vec3, RayCount) {
     let (_, wo_l) = local_outgoing(s, wo);
     let (mut diffuse, mut specular) = (Vec3::ZERO, Vec3::ZERO);
     let rays = draw_samples(s, wo, p, light, scene, settings, rng, &mut |smp| {
@@ -253,8 +267,9 @@ pub fn shade_point(s: &Surfel, wo: Vec3, p: &SurfaceParams, light: &LightSampler
 }
 
 /// Shade every covered pixel. `stream_offset` separates the random streams of different views.
+/// The rays traced are returned and added to the process-wide tally (`ray_count`).
 pub fn shade(gbuf: &GBuffer, params: &[Option<SurfaceParams>], light: &LightSampler, scene: &TraceScene, settings: &McSettings, stream_offset: u64) -> McBuffers {
-    let shaded: Vec<(Vec3, Vec3, u64)> = gbuf
+    let shaded: Vec<(Vec3, Vec3, RayCount)> = gbuf
         .surfels
         .par_iter()
         .zip(params.par_iter())
@@ -265,12 +280,10 @@ pub fn shade(gbuf: &GBuffer, params: &[Option<SurfaceParams>], light: &LightSamp
                 let wo = (gbuf.origin - s.position).normalize();
                 shade_point(s, wo, p, light, scene, settings, &mut rng)
             }
-            _ => (Vec3::ZERO, Vec3::ZERO, 0),
+            _ => (Vec3::ZERO, Vec3::ZERO, RayCount::ZERO),
         })
         .collect();
-    McBuffers {
-        diffuse: shaded.iter().map(|s| s.0).collect(),
-        specular: shaded.iter().map(|s| s.1).collect(),
-        shadow_rays: shaded.iter().map(|s| s.2).sum(),
-    }
+    let rays = shaded.iter().map(|s| s.2).sum();
+    ray_count::record(rays);
+    McBuffers { diffuse: shaded.iter().map(|s| s.0).collect(), specular: shaded.iter().map(|s| s.1).collect(), rays }
 }

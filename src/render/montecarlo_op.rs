@@ -32,7 +32,16 @@ use crate::material::SurfaceParams;
 use crate::optim::tape::{apply, scatter_add_banded, Kernel, Real};
 use crate::render::gbuffer::Surfel;
 use crate::render::montecarlo::{draw_samples, local_outgoing, Incident, McSettings, TraceScene};
+use crate::render::ray_count::{self, RayCount};
 use crate::rng::Sampler;
+
+/// Pixels per parallel work item of [`McShading::prepare`]: enough to amortise one sample list's
+/// allocation, few enough that two threads stay balanced on a 20k-pixel view.
+const PREPARE_CHUNK: usize = 256;
+
+/// What `prepare` draws for one chunk of pixels: per pixel its local outgoing direction and its
+/// range in the chunk's sample list, the list, and the rays traced.
+type ChunkSamples = (Vec<Option<[f32; 3]>>, Vec<(u32, u32)>, Vec<Stored>, RayCount);
 
 /// One pixel's fixed data: its surfel, the direction to the camera and its random stream.
 #[derive(Clone, Copy, Debug)]
@@ -80,12 +89,15 @@ impl Stored {
 pub struct McShading {
     /// Per pixel: local outgoing direction (None for a miss) and its sample range.
     wo_l: Arc<[Option<[f32; 3]>]>,
-    offsets: Arc<[u32]>,
-    samples: Arc<[Stored]>,
+    /// Per pixel: its samples' range in its chunk's list (pixel p is in chunk p / PREPARE_CHUNK).
+    ranges: Arc<[(u32, u32)]>,
+    /// One sample list per chunk of pixels, kept as drawn (no concatenated copy).
+    chunks: Arc<[Vec<Stored>]>,
     light_res: usize,
     specular: bool,
-    /// Shadow rays traced by `prepare` (bounce rays included).
-    pub shadow_rays: u64,
+    /// Rays traced by `prepare` (shadow and bounce; the G-buffer's primary rays are counted where
+    /// it is traced). Also added to the process-wide tally.
+    pub rays: RayCount,
     /// Stored samples whose radiance comes from the object's surface (interreflection).
     pub surface_samples: usize,
 }
@@ -96,37 +108,49 @@ impl McShading {
     pub fn prepare(pixels: &[Option<McPixel>], kd: &[[f32; 3]], ks: &[[f32; 3]], light: &CubeMap, scene: &TraceScene, settings: &McSettings) -> McShading {
         let sampler = LightSampler::new(light);
         let inv_n = 1.0 / settings.spp.max(1) as f32;
-        let per_pixel: Vec<(Option<[f32; 3]>, Vec<Stored>, u64)> = pixels
-            .par_iter()
+        // Pixels in chunks, each filling one sample list (no allocation per pixel, and none of
+        // the size of all samples: at 16 spp a view's samples take tens of MB).
+        let per_chunk: Vec<ChunkSamples> = pixels
+            .par_chunks(PREPARE_CHUNK)
             .enumerate()
-            .map(|(i, px)| {
-                let Some(px) = px else { return (None, Vec::new(), 0) };
-                let p = SurfaceParams { kd: Vec3::from_array(kd[i]), roughness: ks[i][1], metallic: ks[i][2] };
-                let mut rng = Sampler::new(settings.seed, px.stream);
-                let mut stored = Vec::with_capacity(2 * settings.spp as usize);
-                let rays = draw_samples(&px.surfel, px.wo, &p, &sampler, scene, settings, &mut rng, &mut |s| {
-                    let source = match s.incident {
-                        Incident::Light => Source::Texel(light.nearest_texel(s.wi) as u32),
-                        Incident::Surface => Source::Surface(s.radiance.to_array()),
-                    };
-                    stored.push(Stored { source, wi_l: s.wi_l.to_array(), weight: s.weight * inv_n });
-                });
-                (Some(local_outgoing(&px.surfel, px.wo).1.to_array()), stored, rays)
+            .map(|(c, chunk)| {
+                let mut wo_l = Vec::with_capacity(chunk.len());
+                let mut ranges = Vec::with_capacity(chunk.len());
+                let mut stored = Vec::with_capacity(chunk.len() * 2 * settings.spp.max(1) as usize);
+                let mut rays = RayCount::ZERO;
+                for (j, px) in chunk.iter().enumerate() {
+                    let before = stored.len();
+                    wo_l.push(px.map(|px| local_outgoing(&px.surfel, px.wo).1.to_array()));
+                    if let Some(px) = px {
+                        let i = c * PREPARE_CHUNK + j;
+                        let p = SurfaceParams { kd: Vec3::from_array(kd[i]), roughness: ks[i][1], metallic: ks[i][2] };
+                        let mut rng = Sampler::new(settings.seed, px.stream);
+                        rays += draw_samples(&px.surfel, px.wo, &p, &sampler, scene, settings, &mut rng, &mut |s| {
+                            let source = match s.incident {
+                                Incident::Light(texel) => Source::Texel(texel),
+                                Incident::Surface => Source::Surface(s.radiance.to_array()),
+                            };
+                            stored.push(Stored { source, wi_l: s.wi_l.to_array(), weight: s.weight * inv_n });
+                        });
+                    }
+                    ranges.push((before as u32, stored.len() as u32));
+                }
+                (wo_l, ranges, stored, rays)
             })
             .collect();
-        let mut offsets = Vec::with_capacity(pixels.len() + 1);
-        let mut samples = Vec::new();
-        let mut rays = 0;
-        offsets.push(0u32);
+        let mut ranges = Vec::with_capacity(pixels.len());
+        let mut chunks = Vec::with_capacity(per_chunk.len());
+        let mut rays = RayCount::ZERO;
         let mut wo_l = Vec::with_capacity(pixels.len());
-        for (w, s, r) in per_pixel {
-            wo_l.push(w);
-            samples.extend(s);
-            offsets.push(samples.len() as u32);
-            rays += r;
+        for (w, r, s, n) in per_chunk {
+            wo_l.extend(w);
+            ranges.extend(r);
+            chunks.push(s);
+            rays += n;
         }
-        let surface_samples = samples.iter().filter(|s| matches!(s.source, Source::Surface(_))).count();
-        McShading { wo_l: wo_l.into(), offsets: offsets.into(), samples: samples.into(), light_res: light.res, specular: settings.effects.specular, shadow_rays: rays, surface_samples }
+        ray_count::record(rays);
+        let surface_samples = chunks.iter().flatten().filter(|s| matches!(s.source, Source::Surface(_))).count();
+        McShading { wo_l: wo_l.into(), ranges: ranges.into(), chunks: chunks.into(), light_res: light.res, specular: settings.effects.specular, rays, surface_samples }
     }
 
     pub fn len(&self) -> usize {
@@ -138,7 +162,8 @@ impl McShading {
     }
 
     fn pixel_samples(&self, p: usize) -> &[Stored] {
-        &self.samples[self.offsets[p] as usize..self.offsets[p + 1] as usize]
+        let (start, end) = self.ranges[p];
+        &self.chunks[p / PREPARE_CHUNK][start as usize..end as usize]
     }
 
     fn check_shapes(&self, shapes: &[&[usize]]) -> Result<()> {

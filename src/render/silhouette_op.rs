@@ -283,7 +283,7 @@ mod tests {
     use crate::geometry::bvh::Bvh;
     use crate::geometry::primitives::MeshBuilder;
     use crate::geometry::Mesh;
-    use crate::material::{BaseColor, PartMaterial};
+    use crate::material::{BaseColor, PartMaterial, Scalar};
     use crate::optim::gradcheck::{check_gradient_with, GradCheckOptions};
     use crate::rng::Sampler;
     use candle_core::Device;
@@ -291,7 +291,7 @@ mod tests {
 
     fn blob() -> Mesh {
         let mut b = MeshBuilder::new();
-        let part = b.part(PartMaterial { name: "m".into(), base_color: BaseColor::Constant(Vec3::splat(0.5)), roughness: 0.5, metallic: 0.0 });
+        let part = b.part(PartMaterial { name: "m".into(), base_color: BaseColor::Constant(Vec3::splat(0.5)), roughness: Scalar::Constant(0.5), metallic: Scalar::Constant(0.0) });
         b.ellipsoid(part, Vec3::new(0.1, 0.0, 0.0), Vec3::new(1.0, 0.7, 0.8), Quat::from_rotation_z(0.3), 8, 6);
         b.build()
     }
@@ -344,7 +344,7 @@ mod tests {
         // along each row, the antialiased coverage of the two pixels beside the edge must add up
         // to the exact covered length across them.
         let mut b = MeshBuilder::new();
-        let part = b.part(PartMaterial { name: "m".into(), base_color: BaseColor::Constant(Vec3::splat(0.5)), roughness: 0.5, metallic: 0.0 });
+        let part = b.part(PartMaterial { name: "m".into(), base_color: BaseColor::Constant(Vec3::splat(0.5)), roughness: Scalar::Constant(0.5), metallic: Scalar::Constant(0.0) });
         let _ = part;
         let mut mesh = b.build();
         let cam = Camera::look_at(Vec3::new(0.0, 0.0, 3.0), Vec3::ZERO, Vec3::Y, 0.8, 16, 16);
