@@ -7,7 +7,7 @@ use std::time::Instant;
 
 use reconstruct::eval::geometry_metrics::{geometry_metrics, load_judge_views, view_metrics, GeometryMetricOptions};
 use reconstruct::geometry::bvh::Bvh;
-use reconstruct::geometry::obj::load_ground_truth;
+use reconstruct::geometry::ground_truth::load_ground_truth;
 use reconstruct::scene::{shared_dir, Dataset};
 
 #[test]
