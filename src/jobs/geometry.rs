@@ -16,6 +16,8 @@ use serde::Serialize;
 
 use crate::fit::geometry_pass::{run_geometry_pass, GeometryPassConfig, GeometryStep, GeometryTimings, GeometryView};
 use crate::geometry::hull::{visual_hull, HullOptions, MaskView};
+use crate::eval::geometry_metrics::{geometry_metrics, load_judge_views, view_metrics, GeometryMetricOptions, GeometryMetrics, ViewMetrics};
+use crate::geometry::bvh::Bvh;
 use crate::geometry::Mesh;
 use crate::scene::dataset::Dataset;
 use crate::scene::{ground_truth_mesh, ground_truth_source, SceneSpec};
@@ -76,6 +78,59 @@ pub struct GeometryReport {
     pub why: String,
     pub hull: Option<HullRecord>,
     pub pass: Option<PassRecord>,
+    /// Scores of the mesh (and of the hull it started from), filled by [`score_geometry`].
+    pub scores: Option<GeometryScores>,
+}
+
+/// The geometry scores of a run (evaluation only: this is the one place the stage reads the
+/// ground truth, and only to score).
+#[derive(Clone, Debug, Serialize)]
+pub struct GeometryScores {
+    /// Silhouette IoU and normal error on the test views (needs no mesh).
+    pub test_views: Option<ViewMetrics>,
+    /// Against the ground-truth mesh, over what the training views' depth maps can judge.
+    pub mesh: Option<GeometryMetrics>,
+    pub hull: Option<GeometryMetrics>,
+    /// What could not be scored, and why.
+    pub not_computed: Vec<String>,
+    pub seconds: f64,
+}
+
+/// Scores `mesh` (and `hull`) as far as the data allows.
+pub fn score_geometry(spec: &SceneSpec, dataset: &Dataset, mesh: &Mesh, bvh: &Bvh, hull: Option<&Mesh>) -> GeometryScores {
+    let t = Instant::now();
+    let mut not_computed = Vec::new();
+    let test_views = if dataset.test.is_empty() {
+        not_computed.push("silhouette IoU and normal error: the data has no test views".to_string());
+        None
+    } else {
+        view_metrics(mesh, bvh, &dataset.test).map_err(|e| not_computed.push(format!("silhouette IoU and normal error: {e:#}"))).ok()
+    };
+    let (mut mesh_scores, mut hull_scores) = (None, None);
+    let gt = match ground_truth_source(spec) {
+        Ok(Some(_)) => ground_truth_mesh(spec).map_err(|e| format!("{e:#}")),
+        Ok(None) => Err("the data has no ground-truth mesh".to_string()),
+        Err(e) => Err(format!("{e:#}")),
+    };
+    let judges = if dataset.train.iter().all(|v| v.has_depth()) {
+        load_judge_views(&dataset.train).map_err(|e| format!("{e:#}"))
+    } else {
+        Err("the training views have no depth maps".to_string())
+    };
+    match (gt, judges) {
+        (Ok(gt), Ok(judges)) => {
+            let opts = GeometryMetricOptions::default();
+            match geometry_metrics(mesh, &gt, &judges, &opts) {
+                Ok(m) => mesh_scores = Some(m),
+                Err(e) => not_computed.push(format!("mesh metrics: {e:#}")),
+            }
+            if let Some(h) = hull {
+                hull_scores = geometry_metrics(h, &gt, &judges, &opts).map_err(|e| not_computed.push(format!("hull metrics: {e:#}"))).ok();
+            }
+        }
+        (Err(e), _) | (_, Err(e)) => not_computed.push(format!("Chamfer, F-score and normal consistency: {e}")),
+    }
+    GeometryScores { test_views, mesh: mesh_scores, hull: hull_scores, not_computed, seconds: t.elapsed().as_secs_f64() }
 }
 
 /// The stage's result.
@@ -103,7 +158,7 @@ pub fn obtain_geometry(spec: &SceneSpec, dataset: &Dataset, source: GeometrySour
     }
     if used == GeometrySource::GroundTruth {
         let mesh = ground_truth_mesh(spec)?;
-        return Ok(GeometryOutcome { mesh, vertex_kd: None, hull: None, report: GeometryReport { used, why, hull: None, pass: None } });
+        return Ok(GeometryOutcome { mesh, vertex_kd: None, hull: None, report: GeometryReport { used, why, hull: None, pass: None, scores: None } });
     }
     reconstruct(dataset, pass, progress, why)
 }
@@ -170,6 +225,31 @@ fn reconstruct(dataset: &Dataset, pass: &GeometryPassConfig, progress: bool, why
         mesh: result.mesh,
         vertex_kd: Some(result.vertex_kd),
         hull: Some(hull.mesh),
-        report: GeometryReport { used: GeometrySource::Reconstruct, why, hull: Some(hull_record), pass: Some(pass_record) },
+        report: GeometryReport { used: GeometrySource::Reconstruct, why, hull: Some(hull_record), pass: Some(pass_record), scores: None },
     })
+}
+
+/// The scores in a few lines for the terminal and the Markdown report.
+pub fn scores_summary(s: &GeometryScores) -> String {
+    let mut out = String::from("geometry scores:");
+    let row = |name: &str, m: &GeometryMetrics| {
+        format!(
+            "\n- {name}: Chamfer (visible) {:.4}, F-score@1% {:.3}, normal consistency {:.3} (accuracy {:.4}, completeness {:.4}; distances / GT diagonal)",
+            m.chamfer_visible, m.fscore, m.normal_consistency, m.accuracy, m.completeness
+        )
+    };
+    if let Some(m) = &s.hull {
+        out.push_str(&row("visual hull", m));
+    }
+    if let Some(m) = &s.mesh {
+        out.push_str(&row("reconstructed mesh", m));
+    }
+    if let Some(v) = &s.test_views {
+        let n = v.normal_error_deg.map_or("-".to_string(), |e| format!("{e:.2}°"));
+        out.push_str(&format!("\n- test views: silhouette IoU {:.4}, normal error {n}", v.silhouette_iou));
+    }
+    for line in &s.not_computed {
+        out.push_str(&format!("\n- not computed: {line}"));
+    }
+    out
 }

@@ -27,7 +27,7 @@ use crate::fit::training_view::TrainingView;
 use crate::geometry::atlas::{self, Atlas, AtlasSource};
 use crate::geometry::bvh::Bvh;
 pub use crate::jobs::geometry::GeometrySource;
-use crate::jobs::geometry::{obtain_geometry, GeometryReport};
+use crate::jobs::geometry::{obtain_geometry, score_geometry, scores_summary, GeometryReport};
 use crate::fit::geometry_pass::{interpolate, transfer_vertex_values, GeometryPassConfig};
 use crate::material::texture_maps::MaterialTextures;
 use crate::material::SurfaceParams;
@@ -148,6 +148,15 @@ pub fn prepare(scene: &str, data: Option<&PathBuf>, geometry: GeometrySource, pa
         })
     });
     stages.push(("atlas, BVH".to_string(), t.elapsed().as_secs_f64()));
+    let mut geometry_report = outcome.report;
+    if geometry_report.used == GeometrySource::Reconstruct {
+        let scores = score_geometry(&spec, &dataset, &atlas.mesh, &bvh, outcome.hull.as_ref());
+        if progress {
+            eprintln!("{}", scores_summary(&scores));
+        }
+        stages.push(("score geometry".to_string(), scores.seconds));
+        geometry_report.scores = Some(scores);
+    }
 
     let t = Instant::now();
     // Materials are what we solve for, so `auto` may not look at the ground-truth ones.
@@ -168,7 +177,7 @@ pub fn prepare(scene: &str, data: Option<&PathBuf>, geometry: GeometrySource, pa
         bail!("no training view of scene {:?} sees the mesh: check the cameras and the geometry", spec.name);
     }
     stages.push(("trace training views".to_string(), t.elapsed().as_secs_f64()));
-    Ok(Prepared { spec, dataset, atlas, bvh, geometry: outcome.report, hull: outcome.hull, initial_textures, effects, views, stage_seconds: stages })
+    Ok(Prepared { spec, dataset, atlas, bvh, geometry: geometry_report, hull: outcome.hull, initial_textures, effects, views, stage_seconds: stages })
 }
 
 /// The shading context of a run on `prepared` with `config`.

@@ -67,7 +67,16 @@ pub fn markdown(r: &ReconstructReport, plots: &[(String, String)]) -> String {
     let mut s = String::new();
     let _ = writeln!(s, "# reconstruct run: {}\n", r.scene);
     let _ = writeln!(s, "- data: `{}`", r.data_dir.display());
-    let _ = writeln!(s, "- geometry: {:?}; UV atlas: {}", r.geometry, r.atlas);
+    let _ = writeln!(s, "- geometry: {} ({}); UV atlas: {}", r.geometry.used.tag(), r.geometry.why, r.atlas);
+    if let Some(h) = &r.geometry.hull {
+        let _ = writeln!(s, "- visual hull: {} vertices, {} triangles, {:.1} s ({})", h.vertices, h.triangles, h.seconds, h.summary);
+    }
+    if let Some(p) = &r.geometry.pass {
+        let _ = writeln!(s, "- geometry pass: {} iterations over {} views at {}×{}, {:.1} s", p.config.iterations, p.views, p.resolution[0], p.resolution[1], p.seconds);
+    }
+    if let Some(sc) = &r.geometry.scores {
+        let _ = writeln!(s, "- {}", crate::jobs::geometry::scores_summary(sc).replace('\n', "\n  "));
+    }
     let _ = writeln!(s, "- prior: **{}**", r.prior);
     let _ = writeln!(
         s,
