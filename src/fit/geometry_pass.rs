@@ -32,6 +32,9 @@ use obvhs::BvhBuildParams;
 use serde::Serialize;
 
 use crate::geometry::bvh::Bvh;
+use crate::geometry::closest_point::SurfaceQuery;
+use crate::geometry::manifold::{check_closed_manifold, signed_volume};
+use crate::geometry::remesh::isotropic_remesh;
 use crate::geometry::Mesh;
 use crate::image::Image;
 use crate::optim::adam::{Adam, GroupConfig, LrSchedule};
@@ -43,6 +46,7 @@ use crate::render::silhouette_op::{antialias, EdgeTopology, Silhouettes};
 use crate::render::surface_op::{surface_points, PixelRay, SurfacePoints};
 use crate::render::vertex_normals_op::vertex_normals;
 use crate::rng::Sampler;
+use crate::scene::camera::median_pixel_footprint;
 use crate::scene::Camera;
 
 use super::pixel_scatter::PixelMap;
@@ -62,6 +66,13 @@ pub struct GeometryPassConfig {
     pub lr_light: f64,
     /// Weight of the coverage MSE beside the colour L1 (NVDiffRecMC adds them with weight 1).
     pub mask_weight: f64,
+    /// The pass runs in this many stages of equal length; before each stage after the first the
+    /// mesh is remeshed isotropically to a finer edge (`geometry::remesh`), so the first stage
+    /// moves a coarse mesh far and the later ones resolve detail. 1 keeps the start's connectivity.
+    pub stages: usize,
+    /// The last stage's edge length, in pixel footprints of the training views at the object
+    /// (the stages in between step geometrically from the start mesh's edge to this).
+    pub final_edge_pixels: f64,
     pub seed: u64,
 }
 
@@ -80,6 +91,11 @@ impl Default for GeometryPassConfig {
             lr_material: 0.03,
             lr_light: 0.03,
             mask_weight: 1.0,
+            // Measured on the hotdog and the default scene (docs/geometry.md): see there.
+            stages: 3,
+            // An edge of 1.5 pixels: finer triangles than that cover too few pixel centres to get a
+            // shading gradient of their own, and the outline is resolved to a pixel anyway.
+            final_edge_pixels: 1.5,
             seed: 0,
         }
     }
@@ -112,6 +128,20 @@ pub struct GeometryTimings {
     pub shading: f64,
     pub backward: f64,
     pub update: f64,
+    /// Remeshing between stages, with the carrying-over of the per-vertex colour.
+    pub remesh: f64,
+}
+
+/// One stage of the pass: from which iteration, at which edge length, on how many triangles.
+#[derive(Clone, Debug, Serialize, serde::Deserialize)]
+pub struct StageRecord {
+    pub first_iteration: usize,
+    /// Target edge length of the remesh that began the stage (the start's mean edge for the first).
+    pub target_edge: f64,
+    pub vertices: usize,
+    pub triangles: usize,
+    /// What happened at the stage's remesh (empty for the first stage).
+    pub note: String,
 }
 
 pub struct GeometryPassResult {
@@ -121,6 +151,7 @@ pub struct GeometryPassResult {
     pub vertex_kd: Vec<Vec3>,
     pub light_sh: Vec<f32>,
     pub history: Vec<GeometryStep>,
+    pub stages: Vec<StageRecord>,
     pub timings: GeometryTimings,
 }
 
@@ -136,7 +167,7 @@ fn to_vec3(v: &[f64; 3]) -> Vec3 {
     Vec3::new(v[0] as f32, v[1] as f32, v[2] as f32)
 }
 
-/// The mesh at positions `x` with the start mesh's connectivity (normals recomputed).
+/// The mesh at positions `x` with `start`'s connectivity (normals recomputed).
 fn mesh_at(start: &Mesh, x: &[[f64; 3]]) -> Mesh {
     let mut m = start.clone();
     m.positions = x.iter().map(to_vec3).collect();
@@ -243,7 +274,118 @@ fn render_view_loss(
     Ok(ViewRender { loss, mask_mse })
 }
 
-/// Runs the pass from `start` (a closed mesh; its connectivity is kept).
+/// The per-connectivity state of the pass: rebuilt at each stage's remesh.
+struct StageState {
+    /// The mesh the stage started from (its connectivity, parts and materials).
+    template: Mesh,
+    triangles: Arc<[[u32; 3]]>,
+    topology: EdgeTopology,
+    ls: LargeSteps,
+    x: Vec<[f64; 3]>,
+    u: Vec<[f64; 3]>,
+    pos_adam: UniformAdam,
+    /// A triangle whose doubled area squared falls below this is degenerate.
+    min_area2: f64,
+    kd: Var,
+    /// kd and light; rebuilt with the stage (new kd) but continuing the schedule.
+    adam: Adam,
+}
+
+impl StageState {
+    fn new(template: Mesh, vertex_kd: &[Vec3], light: &Var, config: &GeometryPassConfig, schedule: LrSchedule, step: usize) -> Result<StageState> {
+        let triangles: Arc<[[u32; 3]]> = template.triangles.clone().into();
+        let topology = EdgeTopology::new(&triangles);
+        let ls = LargeSteps::new(template.positions.len(), &triangles, config.lambda).context("geometry pass")?;
+        let x: Vec<[f64; 3]> = template.positions.iter().map(|p| p.as_dvec3().to_array()).collect();
+        let u = ls.to_u(&x);
+        let edge = mean_edge_length(&template);
+        let pos_adam = UniformAdam::new(x.len(), config.step_per_edge * edge);
+        // A triangle whose doubled area falls below 1e-6 of the mean edge squared is degenerate.
+        let min_area2 = (1e-6 * edge * edge).powi(2);
+        let dev = &Device::Cpu;
+        let kd_rows: Vec<f32> = vertex_kd.iter().flat_map(|c| c.to_array()).collect();
+        let kd = Var::from_tensor(&Tensor::from_vec(kd_rows, (x.len(), 3), dev)?)?;
+        let mut adam = Adam::new(schedule).starting_at(step);
+        adam.add_group(GroupConfig::new("vertex kd", config.lr_material).with_clamp(0.0, 1.0), vec![kd.clone()])?;
+        adam.add_group(GroupConfig::new("sh light", config.lr_light), vec![light.clone()])?;
+        Ok(StageState { template, triangles, topology, ls, x, u, pos_adam, min_area2, kd, adam })
+    }
+
+    fn mesh(&self) -> Mesh {
+        mesh_at(&self.template, &self.x)
+    }
+
+    fn vertex_kd(&self) -> Result<Vec<Vec3>> {
+        Ok(self.kd.as_tensor().flatten_all()?.to_vec1::<f32>()?.chunks_exact(3).map(|c| Vec3::new(c[0], c[1], c[2])).collect())
+    }
+}
+
+/// `mesh` remeshed to `target_edge` with its per-vertex colour carried over (each new vertex takes
+/// the colour interpolated at its closest point on the old surface), or `None` with the reason
+/// when the remesher's result is not a clean closed surface (the stage then keeps the old mesh).
+fn remesh_stage(mesh: &Mesh, vertex_kd: &[Vec3], target_edge: f64) -> Result<std::result::Result<(Mesh, Vec<Vec3>), String>> {
+    let mut outcome = None;
+    for flips in [true, false] {
+        let (p, t) = isotropic_remesh(&mesh.positions, &mesh.triangles, target_edge as f32, REMESH_ROUNDS, flips)?;
+        let mut m = mesh.clone();
+        m.normals = vec![Vec3::Z; p.len()];
+        m.uvs = vec![Vec2::ZERO; p.len()];
+        m.triangle_part = vec![0; t.len()];
+        m.positions = p;
+        m.triangles = t;
+        m.recompute_normals();
+        if check_closed_manifold(&m).is_ok() && signed_volume(&m) > 0.0 {
+            outcome = Some(m);
+            break;
+        }
+    }
+    let Some(new) = outcome else {
+        return Ok(Err(format!("the remesh to edge {target_edge:.4} did not give a closed outward surface; kept the previous mesh")));
+    };
+    let query = SurfaceQuery::new(mesh)?;
+    let kd = new
+        .positions
+        .iter()
+        .map(|&p| match query.closest(p) {
+            Some(c) => {
+                let [a, b, cc] = mesh.triangle_positions(c.triangle as usize);
+                let bary = barycentric(a, b, cc, c.point);
+                interpolate(mesh, vertex_kd, c.triangle as usize, bary)
+            }
+            None => Vec3::splat(0.5),
+        })
+        .collect();
+    Ok(Ok((new, kd)))
+}
+
+/// Barycentrics (b1, b2) of `p` (assumed in the triangle's plane) in triangle (a, b, c), clamped
+/// to the triangle.
+fn barycentric(a: Vec3, b: Vec3, c: Vec3, p: Vec3) -> Vec2 {
+    let (e1, e2, d) = (b - a, c - a, p - a);
+    let (d11, d12, d22) = (e1.dot(e1), e1.dot(e2), e2.dot(e2));
+    let (d1, d2) = (d.dot(e1), d.dot(e2));
+    let det = d11 * d22 - d12 * d12;
+    if det.abs() <= f32::EPSILON * d11 * d22 {
+        return Vec2::ZERO;
+    }
+    let b1 = ((d22 * d1 - d12 * d2) / det).clamp(0.0, 1.0);
+    let b2 = ((d11 * d2 - d12 * d1) / det).clamp(0.0, 1.0 - b1);
+    Vec2::new(b1, b2)
+}
+
+/// Rounds of the remesher between stages: the remesher's own default, as for the hull.
+const REMESH_ROUNDS: u16 = 10;
+
+/// The target edge of each stage: geometric steps from `start_edge` to `final_edge` (never
+/// coarser than the start: a final edge above the start's keeps the start's connectivity).
+fn stage_edges(start_edge: f64, final_edge: f64, stages: usize) -> Vec<f64> {
+    let stages = stages.max(1);
+    let last = final_edge.min(start_edge);
+    (0..stages).map(|s| if stages == 1 { start_edge } else { start_edge * (last / start_edge).powf(s as f64 / (stages - 1) as f64) }).collect()
+}
+
+/// Runs the pass from `start` (a closed mesh; see [`GeometryPassConfig::stages`] for when its
+/// connectivity changes).
 pub fn run_geometry_pass(start: &Mesh, views: &[GeometryView], config: &GeometryPassConfig, progress: bool) -> Result<GeometryPassResult> {
     if start.triangles.is_empty() {
         bail!("geometry pass: the start mesh is empty");
@@ -271,24 +413,15 @@ pub fn run_geometry_pass(start: &Mesh, views: &[GeometryView], config: &Geometry
         })
         .collect::<Result<_>>()?;
 
-    let triangles: Arc<[[u32; 3]]> = start.triangles.clone().into();
-    let topology = EdgeTopology::new(&triangles);
-    let ls = LargeSteps::new(start.positions.len(), &triangles, config.lambda).context("geometry pass")?;
-    let mut x: Vec<[f64; 3]> = start.positions.iter().map(|p| p.as_dvec3().to_array()).collect();
-    let mut u = ls.to_u(&x);
-    let edge = mean_edge_length(start);
-    let mut pos_adam = UniformAdam::new(x.len(), config.step_per_edge * edge);
-    // A triangle whose doubled area falls below 1e-6 of the mean edge squared is degenerate.
-    let min_area2 = (1e-6 * edge * edge).powi(2);
-
     let dev = &Device::Cpu;
-    let v = start.positions.len();
-    let kd = Var::from_tensor(&Tensor::full(0.5f32, (v, 3), dev)?)?;
-    let light = Var::from_tensor(&Tensor::from_vec(constant_light(1.0), (SH_COEFFICIENTS, 3), dev)?)?;
     let schedule = LrSchedule { warmup_steps: 0, decay_steps: config.iterations.max(1), staircase: false };
-    let mut adam = Adam::new(schedule);
-    adam.add_group(GroupConfig::new("vertex kd", config.lr_material).with_clamp(0.0, 1.0), vec![kd.clone()])?;
-    adam.add_group(GroupConfig::new("sh light", config.lr_light), vec![light.clone()])?;
+    let light = Var::from_tensor(&Tensor::from_vec(constant_light(1.0), (SH_COEFFICIENTS, 3), dev)?)?;
+    let (lo, hi) = start.bounds().context("geometry pass: the start mesh has no vertices")?;
+    let footprint = median_pixel_footprint(views.iter().map(|v| &v.camera), 0.5 * (lo + hi)) as f64;
+    let edges = stage_edges(mean_edge_length(start), config.final_edge_pixels * footprint, config.stages);
+    let stage_starts: Vec<usize> = (0..edges.len()).map(|s| s * config.iterations / edges.len()).collect();
+    let mut state = StageState::new(start.clone(), &vec![Vec3::splat(0.5); start.positions.len()], &light, config, schedule, 0)?;
+    let mut stages = vec![StageRecord { first_iteration: 0, target_edge: edges[0], vertices: start.positions.len(), triangles: start.triangles.len(), note: String::new() }];
 
     let bar = if progress { ProgressBar::new(config.iterations as u64) } else { ProgressBar::hidden() };
     bar.set_style(
@@ -300,9 +433,22 @@ pub fn run_geometry_pass(start: &Mesh, views: &[GeometryView], config: &Geometry
     let mut timings = GeometryTimings::default();
     let mut order: Vec<usize> = Vec::new();
     for it in 0..config.iterations {
+        if let Some(s) = stage_starts.iter().skip(1).position(|&first| first == it).map(|k| k + 1) {
+            let t = Instant::now();
+            let mesh = state.mesh();
+            let note = match remesh_stage(&mesh, &state.vertex_kd()?, edges[s]).with_context(|| format!("geometry pass: remeshing before iteration {it}"))? {
+                Ok((new, kd)) => {
+                    state = StageState::new(new, &kd, &light, config, schedule, it)?;
+                    String::new()
+                }
+                Err(why) => why,
+            };
+            stages.push(StageRecord { first_iteration: it, target_edge: edges[s], vertices: state.x.len(), triangles: state.triangles.len(), note });
+            timings.remesh += t.elapsed().as_secs_f64();
+        }
         let t_step = Instant::now();
         let t = Instant::now();
-        let mesh = mesh_at(start, &x);
+        let mesh = state.mesh();
         let bvh = Bvh::build_with(&mesh, BvhBuildParams::fastest_build());
         timings.bvh_rebuild += t.elapsed().as_secs_f64();
 
@@ -319,8 +465,9 @@ pub fn run_geometry_pass(start: &Mesh, views: &[GeometryView], config: &Geometry
             batch.push(order.pop().expect("refilled above"));
         }
 
-        let positions = Var::from_tensor(&Tensor::from_vec(x.iter().flat_map(|p| p.map(|c| c as f32)).collect::<Vec<_>>(), (v, 3), dev)?)?;
-        let normals = vertex_normals(triangles.clone(), positions.as_tensor())?;
+        let v = state.x.len();
+        let positions = Var::from_tensor(&Tensor::from_vec(state.x.iter().flat_map(|p| p.map(|c| c as f32)).collect::<Vec<_>>(), (v, 3), dev)?)?;
+        let normals = vertex_normals(state.triangles.clone(), positions.as_tensor())?;
         let mut losses = Vec::with_capacity(batch.len());
         let mut mask_mse = 0.0;
         for &i in &batch {
@@ -329,11 +476,11 @@ pub fn run_geometry_pass(start: &Mesh, views: &[GeometryView], config: &Geometry
                 &targets[i],
                 &mesh,
                 &bvh,
-                &triangles,
-                &topology,
+                &state.triangles,
+                &state.topology,
                 positions.as_tensor(),
                 &normals,
-                kd.as_tensor(),
+                state.kd.as_tensor(),
                 light.as_tensor(),
                 bg,
                 config.mask_weight,
@@ -352,8 +499,8 @@ pub fn run_geometry_pass(start: &Mesh, views: &[GeometryView], config: &Geometry
         timings.backward += t.elapsed().as_secs_f64();
 
         let t = Instant::now();
-        let lr_factor = adam.lr_factor();
-        adam.step(&grads)?;
+        let lr_factor = state.adam.lr_factor();
+        state.adam.step(&grads)?;
         let g_x: Vec<[f64; 3]> = match grads.get(positions.as_tensor()) {
             Some(g) => g.flatten_all()?.to_vec1::<f32>()?.chunks_exact(3).map(|c| [c[0] as f64, c[1] as f64, c[2] as f64]).collect(),
             None => vec![[0.0; 3]; v],
@@ -361,12 +508,12 @@ pub fn run_geometry_pass(start: &Mesh, views: &[GeometryView], config: &Geometry
         if g_x.iter().flatten().any(|g| !g.is_finite()) {
             bail!("geometry pass: non-finite position gradient at iteration {it}");
         }
-        let du = pos_adam.step(&ls.solve(&g_x), lr_factor);
+        let du = state.pos_adam.step(&state.ls.solve(&g_x), lr_factor);
         let (mut share, mut accepted) = (1.0, None);
         for _ in 0..9 {
-            let u_new: Vec<[f64; 3]> = u.iter().zip(&du).map(|(a, d)| std::array::from_fn(|k| a[k] + share * d[k])).collect();
-            let x_new = ls.solve(&u_new);
-            if broken_triangles(&triangles, &x, &x_new, min_area2) == 0 {
+            let u_new: Vec<[f64; 3]> = state.u.iter().zip(&du).map(|(a, d)| std::array::from_fn(|k| a[k] + share * d[k])).collect();
+            let x_new = state.ls.solve(&u_new);
+            if broken_triangles(&state.triangles, &state.x, &x_new, state.min_area2) == 0 {
                 accepted = Some((u_new, x_new));
                 break;
             }
@@ -378,8 +525,8 @@ pub fn run_geometry_pass(start: &Mesh, views: &[GeometryView], config: &Geometry
                  triangles; lower the position step (step_per_edge) or start from a cleaner mesh"
             );
         };
-        u = u_new;
-        x = x_new;
+        state.u = u_new;
+        state.x = x_new;
         timings.update += t.elapsed().as_secs_f64();
 
         history.push(GeometryStep { iteration: it, loss: loss_value, mask_mse, step_taken: share, seconds: t_step.elapsed().as_secs_f64() });
@@ -387,10 +534,10 @@ pub fn run_geometry_pass(start: &Mesh, views: &[GeometryView], config: &Geometry
         bar.inc(1);
     }
     bar.finish();
-    let mesh = mesh_at(start, &x);
-    let vertex_kd = kd.as_tensor().flatten_all()?.to_vec1::<f32>()?.chunks_exact(3).map(|c| Vec3::new(c[0], c[1], c[2])).collect();
+    let mesh = state.mesh();
+    let vertex_kd = state.vertex_kd()?;
     let light_sh = light.as_tensor().flatten_all()?.to_vec1::<f32>()?;
-    Ok(GeometryPassResult { mesh, vertex_kd, light_sh, history, timings })
+    Ok(GeometryPassResult { mesh, vertex_kd, light_sh, history, stages, timings })
 }
 
 /// Per-vertex values `attr` of `source` carried to a mesh whose triangles are the same in the

@@ -41,17 +41,17 @@ use std::time::Instant;
 
 use anyhow::{bail, Result};
 use baby_shark::exports::nalgebra::Vector3;
-use baby_shark::mesh::corner_table::CornerTable;
-use baby_shark::remeshing::incremental::IncrementalRemesher;
 use baby_shark::voxel::prelude::{MarchingCubesMesher, Volume};
 use glam::{Mat3, Mat4, Vec2, Vec3};
 use rayon::prelude::*;
 
 use crate::geometry::manifold::{check_closed_manifold, orient_consistently, signed_volume, split_pinched_vertices};
 use crate::geometry::mask_distance::MaskDistance;
+use crate::geometry::remesh::isotropic_remesh;
 use crate::geometry::{Mesh, Part};
 use crate::image::Image;
 use crate::material::{BaseColor, PartMaterial, Scalar};
+use crate::scene::camera::median_pixel_footprint;
 use crate::scene::Camera;
 
 /// One training view's silhouette.
@@ -148,7 +148,7 @@ pub fn visual_hull(views: &[MaskView], opts: &HullOptions) -> Result<Hull> {
 
     // Coarse: locate the object, grow the box until nothing survives at its faces.
     let (centre, radius) = object_centre_and_radius(views, &fields)?;
-    let footprint = pixel_footprint(views, centre);
+    let footprint = median_pixel_footprint(views.iter().map(|v| &v.camera), centre);
     let n = opts.coarse_resolution;
     let mut half = 1.5 * radius;
     let mut coarse;
@@ -212,14 +212,14 @@ pub fn visual_hull(views: &[MaskView], opts: &HullOptions) -> Result<Hull> {
     check_closed_manifold(&hull_mesh(positions.clone(), triangles.clone()))
         .map_err(|e| anyhow::anyhow!("visual hull: the marching-cubes surface is broken: {e}"))?;
     let target_edge = (opts.edge_pixels * footprint).max(h);
-    let (new_positions, new_triangles) = remesh(&positions, &triangles, target_edge, opts.remesh_iterations, true)?;
+    let (new_positions, new_triangles) = isotropic_remesh(&positions, &triangles, target_edge, opts.remesh_iterations, true).map_err(|e| anyhow::anyhow!("visual hull: {e}"))?;
     let mut mesh = hull_mesh(new_positions, new_triangles);
     let mut remesh_note = String::new();
     if let Err(e) = check_closed_manifold(&mesh) {
         // A guard (not seen to fire on the tests nor the hotdog): the remesher's checks are local, and
         // flips are the operation with the weakest topological test there. Said in the summary.
         remesh_note = format!(" (the full remesh broke the surface: {e}; remeshed again without edge flips)");
-        let (p, t) = remesh(&positions, &triangles, target_edge, opts.remesh_iterations, false)?;
+        let (p, t) = isotropic_remesh(&positions, &triangles, target_edge, opts.remesh_iterations, false).map_err(|e| anyhow::anyhow!("visual hull: {e}"))?;
         mesh = hull_mesh(p, t);
     }
     let topology = check_closed_manifold(&mesh).map_err(|e| anyhow::anyhow!("visual hull: the remeshed surface is broken: {e}"))?;
@@ -416,13 +416,6 @@ fn object_centre_and_radius(views: &[MaskView], fields: &[ViewField]) -> Result<
     let centre = a.inverse() * b;
     let radius = rays.iter().map(|&(o, tan)| o.distance(centre) * tan).fold(0.0f32, f32::max);
     Ok((centre, radius))
-}
-
-/// The median over views of the world size of one pixel at `centre`'s depth.
-fn pixel_footprint(views: &[MaskView], centre: Vec3) -> f32 {
-    let mut sizes: Vec<f32> = views.iter().map(|v| v.camera.project(centre).1.abs() / v.camera.focal()).collect();
-    sizes.sort_by(f32::total_cmp);
-    sizes[sizes.len() / 2]
 }
 
 /// The directions along which unseen regions are cut: `count` spread evenly over the sphere
@@ -717,32 +710,6 @@ fn orient_outward(positions: &[Vec3], triangles: &mut [[u32; 3]]) {
             t.swap(1, 2);
         }
     }
-}
-
-/// baby_shark's incremental isotropic remesh toward `target_edge`.
-fn remesh(positions: &[Vec3], triangles: &[[u32; 3]], target_edge: f32, iterations: u16, flips: bool) -> Result<(Vec<Vec3>, Vec<[u32; 3]>)> {
-    let vertices: Vec<Vector3<f32>> = positions.iter().map(|p| Vector3::new(p.x, p.y, p.z)).collect();
-    let faces: Vec<usize> = triangles.iter().flat_map(|t| t.map(|i| i as usize)).collect();
-    let mut table = CornerTable::<f32>::from_vertex_and_face_slices(&vertices, &faces);
-    if table.faces().next().is_none() {
-        bail!("visual hull: the marching-cubes surface ({} triangles) could not be loaded for remeshing (not manifold)", triangles.len());
-    }
-    IncrementalRemesher::new().with_iterations_count(iterations).with_flip_edges(flips).remesh(&mut table, target_edge);
-    let mut index = table.create_vertex_attribute::<u32>();
-    let mut out_positions = Vec::new();
-    for v in table.vertices() {
-        index[v] = out_positions.len() as u32;
-        let p = table.vertex_position(v);
-        out_positions.push(Vec3::new(p.x, p.y, p.z));
-    }
-    let out_triangles = table
-        .faces()
-        .map(|f| {
-            let (a, b, c) = table.face_vertices(f);
-            [index[a], index[b], index[c]]
-        })
-        .collect();
-    Ok((out_positions, out_triangles))
 }
 
 /// The hull as the one-part mesh the optimiser starts from: grey, rough, dielectric, no UVs.

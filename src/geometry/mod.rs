@@ -17,6 +17,7 @@ pub mod materials_json;
 pub mod mesh;
 pub mod obj;
 pub mod primitives;
+pub mod remesh;
 pub mod surface_samples;
 pub mod texture_file;
 

@@ -14,7 +14,7 @@ use anyhow::{Context, Result};
 use glam::Vec3;
 use serde::Serialize;
 
-use crate::fit::geometry_pass::{run_geometry_pass, GeometryPassConfig, GeometryStep, GeometryTimings, GeometryView};
+use crate::fit::geometry_pass::{run_geometry_pass, GeometryPassConfig, GeometryStep, GeometryTimings, GeometryView, StageRecord};
 use crate::geometry::hull::{visual_hull, HullOptions, MaskView};
 use crate::eval::geometry_metrics::{geometry_metrics, load_judge_views, view_metrics, GeometryMetricOptions, GeometryMetrics, ViewMetrics};
 use crate::geometry::bvh::Bvh;
@@ -68,6 +68,8 @@ pub struct PassRecord {
     pub seconds: f64,
     pub timings: GeometryTimings,
     pub history: Vec<GeometryStep>,
+    /// The pass's stages (the mesh it refined to before each).
+    pub stages: Vec<StageRecord>,
 }
 
 /// What the run reports about its geometry.
@@ -220,6 +222,7 @@ fn reconstruct(dataset: &Dataset, pass: &GeometryPassConfig, progress: bool, why
         seconds: t.elapsed().as_secs_f64(),
         timings: result.timings.clone(),
         history: result.history.clone(),
+        stages: result.stages.clone(),
     };
     Ok(GeometryOutcome {
         mesh: result.mesh,

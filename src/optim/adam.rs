@@ -117,6 +117,13 @@ impl Adam {
         Adam { groups: Vec::new(), schedule, step: 0 }
     }
 
+    /// The same optimiser with its schedule already at `step` (fresh moments): for a run whose
+    /// parameters are replaced part-way, such as the geometry pass after a remesh.
+    pub fn starting_at(mut self, step: usize) -> Self {
+        self.step = step;
+        self
+    }
+
     /// Adds a group; its tensors must be contiguous f32 or f64 CPU `Var`s.
     pub fn add_group(&mut self, config: GroupConfig, vars: Vec<Var>) -> anyhow::Result<()> {
         if let Some((lo, hi)) = &config.clamp {

@@ -66,10 +66,27 @@ impl Camera {
         self.c2w.inverse().transform_vector3(v)
     }
 
+    /// The world size of one pixel at `p`'s depth.
+    pub fn pixel_footprint_at(&self, p: Vec3) -> f32 {
+        self.project(p).1.abs() / self.focal()
+    }
+
     /// The same camera at another resolution (same field of view).
     pub fn resized(&self, width: usize, height: usize) -> Camera {
         Camera { width, height, ..self.clone() }
     }
+}
+
+/// The median over `cameras` of the world size of one pixel at `p`'s depth: the scale at which
+/// the views resolve an object centred there (the hull's voxels and the meshes' edges are sized
+/// in it).
+pub fn median_pixel_footprint<'a>(cameras: impl IntoIterator<Item = &'a Camera>, p: Vec3) -> f32 {
+    let mut sizes: Vec<f32> = cameras.into_iter().map(|c| c.pixel_footprint_at(p)).collect();
+    if sizes.is_empty() {
+        return f32::NAN;
+    }
+    sizes.sort_by(f32::total_cmp);
+    sizes[sizes.len() / 2]
 }
 
 #[cfg(test)]

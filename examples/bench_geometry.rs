@@ -1,0 +1,109 @@
+//! The geometry stage alone on a scene: visual hull, then the geometry pass, with the cost of a
+//! pass step split into its parts (G-buffers, BVH rebuild, shading, backward, update) and the
+//! geometry scores of the hull and of the result against the ground truth (when the data has a
+//! mesh and depth maps). For measuring shape recovery without the material passes.
+//!
+//!     cargo run --release --example bench_geometry [-- --scene nerfactor_hotdog --iterations 600 --json]
+//!
+//! Without `--scene` it runs on the hotdog when the shared data is present, else on the embedded
+//! default scene. `--json` prints one object with the timings and scores.
+
+use std::time::Instant;
+
+use anyhow::Result;
+use clap::Parser;
+use reconstruct::fit::geometry_pass::GeometryPassConfig;
+use reconstruct::geometry::bvh::Bvh;
+use reconstruct::jobs::geometry::{obtain_geometry, score_geometry, scores_summary, GeometrySource};
+use reconstruct::scene::spec::shared_dir;
+use reconstruct::scene::SceneSpec;
+
+#[global_allocator]
+static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
+
+#[derive(Parser)]
+struct Args {
+    /// Scene name or spec file (default: nerfactor_hotdog when the shared data is present, else default).
+    #[arg(long)]
+    scene: Option<String>,
+    /// Data folder overriding the spec's.
+    #[arg(long)]
+    data: Option<std::path::PathBuf>,
+    /// Geometry-pass iterations (default: the pass's default).
+    #[arg(long)]
+    iterations: Option<usize>,
+    /// Write the reconstructed mesh (OBJ) here.
+    #[arg(long)]
+    save: Option<std::path::PathBuf>,
+    /// Print one JSON object instead of tables.
+    #[arg(long)]
+    json: bool,
+}
+
+fn main() -> Result<()> {
+    let args = Args::parse();
+    let scene = args.scene.clone().unwrap_or_else(|| {
+        if shared_dir().join("data/nerfactor/hotdog_2163").is_dir() { "nerfactor_hotdog".into() } else { "default".into() }
+    });
+    let mut spec = SceneSpec::find(&scene)?;
+    if let Some(d) = &args.data {
+        spec = spec.with_data_dir(d);
+    }
+    let dataset = spec.load_dataset()?;
+    let mut pass = GeometryPassConfig::default();
+    if let Some(n) = args.iterations {
+        pass.iterations = n;
+    }
+    let t = Instant::now();
+    let outcome = obtain_geometry(&spec, &dataset, GeometrySource::Reconstruct, &pass, !args.json)?;
+    let total = t.elapsed().as_secs_f64();
+    let bvh = Bvh::build(&outcome.mesh);
+    let scores = score_geometry(&spec, &dataset, &outcome.mesh, &bvh, outcome.hull.as_ref());
+    if let Some(path) = &args.save {
+        reconstruct::geometry::obj::write_obj(path, &outcome.mesh, &[])?;
+    }
+    let hull = outcome.report.hull.as_ref().expect("reconstruction records its hull");
+    let p = outcome.report.pass.as_ref().expect("reconstruction records its pass");
+    let steps = p.history.len().max(1) as f64;
+    let per_step = |s: f64| 1e3 * s / steps;
+    let split = [
+        ("G-buffers", p.timings.gbuffer),
+        ("BVH rebuild", p.timings.bvh_rebuild),
+        ("shading", p.timings.shading),
+        ("backward", p.timings.backward),
+        ("update (Large Steps solve, flip checks)", p.timings.update),
+        ("remesh between stages", p.timings.remesh),
+    ];
+    if args.json {
+        let split_json: serde_json::Map<String, serde_json::Value> = split.iter().map(|(k, v)| (k.to_string(), per_step(*v).into())).collect();
+        let out = serde_json::json!({
+            "scene": scene,
+            "hull": { "seconds": hull.seconds, "triangles": hull.triangles, "target_edge": hull.target_edge },
+            "pass": { "seconds": p.seconds, "iterations": p.history.len(), "views_per_step": p.config.batch,
+                      "resolution": p.resolution, "stages": p.stages, "triangles": outcome.mesh.triangles.len(), "ms_per_step": split_json },
+            "stage_seconds": total,
+            "scores": scores,
+        });
+        println!("{}", serde_json::to_string_pretty(&out)?);
+        return Ok(());
+    }
+    println!("scene {scene}: visual hull {:.1} s ({} triangles, target edge {:.4}), geometry pass {:.1} s", hull.seconds, hull.triangles, hull.target_edge, p.seconds);
+    println!(
+        "pass: {} steps × {} views at {}×{}, final mesh {} triangles; ms per step:",
+        p.history.len(),
+        p.config.batch,
+        p.resolution[0],
+        p.resolution[1],
+        outcome.mesh.triangles.len()
+    );
+    for st in &p.stages {
+        println!("stage from iteration {}: target edge {:.4}, {} vertices, {} triangles {}", st.first_iteration, st.target_edge, st.vertices, st.triangles, st.note);
+    }
+    println!("| part | ms per step |\n|---|---:|");
+    for (name, s) in split {
+        println!("| {name} | {:.1} |", per_step(s));
+    }
+    println!("| whole step | {:.1} |", 1e3 * p.history.iter().map(|h| h.seconds).sum::<f64>() / steps);
+    println!("{}", scores_summary(&scores));
+    Ok(())
+}
