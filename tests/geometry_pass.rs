@@ -5,6 +5,7 @@
 use glam::{Quat, Vec3};
 use reconstruct::fit::geometry_pass::{render_sh, run_geometry_pass, GeometryPassConfig, GeometryView};
 use reconstruct::geometry::icosphere::icosphere;
+use reconstruct::geometry::manifold::{check_closed_manifold, signed_volume};
 use reconstruct::geometry::Mesh;
 use reconstruct::render::sh_light::constant_light;
 use reconstruct::scene::Camera;
@@ -60,5 +61,9 @@ fn a_sphere_becomes_the_ellipsoid_in_its_images() -> anyhow::Result<()> {
     // near this vertex-to-vertex metric's own floor for the start mesh's vertex spacing (~0.05).
     assert!(after < before / 3.0, "chamfer {before} → {after}");
     assert!(result.history.iter().all(|s| s.loss.is_finite()));
+    // The stages' remeshes left a closed, outward-facing surface.
+    assert_eq!(result.stages.len(), config.stages);
+    check_closed_manifold(&result.mesh).map_err(anyhow::Error::msg)?;
+    assert!(signed_volume(&result.mesh) > 0.0);
     Ok(())
 }
