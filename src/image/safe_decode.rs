@@ -63,13 +63,15 @@ pub fn decode_with_image_crate(path: &Path, what: &str) -> Result<image::Dynamic
             .with_context(|| format!("cannot open {what} {}", path.display()))?
             .with_guessed_format()
             .with_context(|| format!("cannot read {what} {}", path.display()))?;
-        reader.limits(image_crate_limits());
         if reader.format().is_none() {
             bail!("{what} {} is in no picture format this program reads", path.display());
         }
-        let decoder = reader.into_decoder().with_context(|| format!("cannot read the header of {what} {}", path.display()))?;
+        // Our limits first (their message says what the header claims), then the crate's for its buffers.
+        reader.no_limits();
+        let mut decoder = reader.into_decoder().with_context(|| format!("cannot read the header of {what} {}", path.display()))?;
         let (w, h) = decoder.dimensions();
         check_dimensions(path, w as u64, h as u64)?;
+        decoder.set_limits(image_crate_limits()).with_context(|| format!("{what} {}: too large to decode", path.display()))?;
         image::DynamicImage::from_decoder(decoder)
             .with_context(|| format!("cannot decode {what} {} (corrupt or unsupported)", path.display()))
     })
