@@ -4,14 +4,13 @@
 
 mod common;
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 use glam::{Mat4, Vec3};
 use reconstruct::geometry::bvh::Bvh;
 use reconstruct::geometry::ground_truth::load_ground_truth;
 use reconstruct::render::gbuffer::GBuffer;
 use reconstruct::scene::camera::Camera;
-
 
 /// The camera of view `folder` (e.g. "test_049") from `transforms_<split>.json`.
 fn camera_of(scene: &Path, split: &str, folder: &str, size: usize) -> Camera {

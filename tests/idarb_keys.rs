@@ -10,7 +10,6 @@ use candle_nn::{Init, VarBuilder};
 use reconstruct::prior::idarb::autoencoder_kl::{AutoencoderKL, AutoencoderKLConfig};
 use reconstruct::prior::idarb::unet_dr2d_condition::{UNetDR2DConditionModel, UNetDR2DConfig};
 use std::collections::BTreeMap;
-use std::path::PathBuf;
 use std::sync::{Arc, Mutex};
 
 /// Hands out broadcast zeros (no allocation) and remembers every request.

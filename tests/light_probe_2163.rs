@@ -4,14 +4,11 @@
 
 mod common;
 
-use std::path::PathBuf;
-
 use glam::Vec3;
 use reconstruct::image::Image;
 use reconstruct::light::latlong;
 use reconstruct::light::{CubeMap, LightSampler, SplitSumLight};
 use reconstruct::rng::Sampler;
-
 
 /// The probe at strength 1 as a 3-channel linear image, or None (with a message) when absent.
 fn load_probe(test: &str) -> Option<Image> {
