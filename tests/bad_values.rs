@@ -154,7 +154,7 @@ fn a_full_or_unwritable_checkpoint_folder_is_named_and_the_last_checkpoint_stays
             std::os::unix::fs::symlink("/dev/full", &tmp).expect("test setup");
         }
     }
-    let err = save(&dir, 0.75).err().expect("a full disk must fail the save (are the temporary names still <file>.tmp?)");
+    let err = save(&dir, 0.75).expect_err("a full disk must fail the save (are the temporary names still <file>.tmp?)");
     let msg = format!("{err:#}");
     assert!(msg.contains(&dir.display().to_string()), "{msg}");
     let cp = checkpoint::load(&dir).expect("the last checkpoint still loads").expect("and is there");
@@ -163,6 +163,6 @@ fn a_full_or_unwritable_checkpoint_folder_is_named_and_the_last_checkpoint_stays
 
     let blocked = tmp("blocked");
     std::fs::write(blocked.join("run"), "a file where the run folder should be").expect("test setup");
-    let msg = format!("{:#}", save(&blocked.join("run/checkpoint"), 0.5).err().expect("refused"));
+    let msg = format!("{:#}", save(&blocked.join("run/checkpoint"), 0.5).expect_err("refused"));
     assert!(msg.contains(&blocked.join("run/checkpoint").display().to_string()), "{msg}");
 }
