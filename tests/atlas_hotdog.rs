@@ -2,6 +2,8 @@
 //! generated atlas in bounded time, and textures baked onto it reproduce the ground-truth
 //! material at random surface points.
 
+mod common;
+
 use std::path::PathBuf;
 use std::time::Instant;
 
@@ -13,17 +15,8 @@ use reconstruct::material::texture_maps::MaterialTextures;
 use reconstruct::material::BaseColor;
 use reconstruct::rng::Sampler;
 
-fn gt_dir() -> Option<PathBuf> {
-    let shared = std::env::var_os("RECONSTRUCT_SHARED_DIR")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared"));
-    let d = shared.join("data/nerfactor/hotdog_2163/gt");
-    if d.join("hotdog.obj").exists() {
-        Some(d)
-    } else {
-        println!("skipped: hotdog ground truth {} not found (set RECONSTRUCT_SHARED_DIR)", d.display());
-        None
-    }
+fn gt_dir(test: &str) -> Option<PathBuf> {
+    common::shared_data::require(test).map(|shared| shared.join("data/nerfactor/hotdog_2163/gt"))
 }
 
 fn area3(m: &Mesh, t: usize) -> f32 {
@@ -32,7 +25,7 @@ fn area3(m: &Mesh, t: usize) -> f32 {
 
 #[test]
 fn hotdog_atlas_and_baked_ground_truth() {
-    let Some(gt) = gt_dir() else { return };
+    let Some(gt) = gt_dir("atlas_hotdog::hotdog_atlas_and_baked_ground_truth") else { return };
     let mesh = load_ground_truth(&gt).unwrap();
     let why = own_uvs_problem(&mesh).expect("the hotdog's own UVs cannot serve one texture");
     println!("hotdog own UVs: {why}");

@@ -2,19 +2,15 @@
 //! Mitsuba from the same mesh): coverage (rgba.png alpha), planar depth (depth.exr), shading
 //! normal (normal.png) and bun albedo (albedo.png, linear) for a few views.
 
-use std::path::{Path, PathBuf};
+mod common;
+
+use std::path::Path;
 
 use glam::{Mat4, Vec3};
 use reconstruct::geometry::bvh::Bvh;
 use reconstruct::geometry::ground_truth::load_ground_truth;
 use reconstruct::render::gbuffer::GBuffer;
 use reconstruct::scene::camera::Camera;
-
-fn shared_dir() -> PathBuf {
-    std::env::var_os("RECONSTRUCT_SHARED_DIR")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared"))
-}
 
 /// The camera of view `folder` (e.g. "test_049") from `transforms_<split>.json`.
 fn camera_of(scene: &Path, split: &str, folder: &str, size: usize) -> Camera {
@@ -149,11 +145,8 @@ fn compare_view(scene: &Path, split: &str, folder: &str, mesh: &reconstruct::geo
 
 #[test]
 fn gbuffer_matches_dataset_ground_truth_passes() {
-    let scene = shared_dir().join("data/nerfactor/hotdog_2163");
-    if !scene.join("gt/hotdog.obj").exists() {
-        println!("skipped: hotdog dataset {} not found (set RECONSTRUCT_SHARED_DIR)", scene.display());
-        return;
-    }
+    let Some(shared) = common::shared_data::require("gbuffer_dataset::gbuffer_matches_dataset_ground_truth_passes") else { return };
+    let scene = shared.join("data/nerfactor/hotdog_2163");
     let mesh = load_ground_truth(scene.join("gt")).unwrap();
     let bvh = Bvh::build(&mesh);
     for (split, folder) in [("train", "train_000"), ("train", "train_037"), ("val", "val_003"), ("test", "test_149")] {

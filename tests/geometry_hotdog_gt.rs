@@ -1,6 +1,8 @@
 //! The hotdog's ground-truth mesh loads with the counts the dataset README states, its bounds
 //! match materials.json, and every part carries the material materials.json assigns.
 
+mod common;
+
 use std::path::PathBuf;
 
 use glam::Vec3;
@@ -9,25 +11,13 @@ use reconstruct::geometry::ground_truth::load_ground_truth;
 use reconstruct::geometry::obj::load_obj;
 use reconstruct::material::BaseColor;
 
-fn shared_dir() -> PathBuf {
-    std::env::var_os("RECONSTRUCT_SHARED_DIR")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared"))
-}
-
-fn gt_dir() -> Option<PathBuf> {
-    let d = shared_dir().join("data/nerfactor/hotdog_2163/gt");
-    if d.join("hotdog.obj").exists() {
-        Some(d)
-    } else {
-        println!("skipped: hotdog ground truth {} not found (set RECONSTRUCT_SHARED_DIR)", d.display());
-        None
-    }
+fn gt_dir(test: &str) -> Option<PathBuf> {
+    common::shared_data::require(test).map(|shared| shared.join("data/nerfactor/hotdog_2163/gt"))
 }
 
 #[test]
 fn hotdog_ground_truth_matches_readme_and_materials_json() {
-    let Some(gt) = gt_dir() else { return };
+    let Some(gt) = gt_dir("geometry_hotdog_gt::hotdog_ground_truth_matches_readme_and_materials_json") else { return };
     let mesh = load_ground_truth(&gt).unwrap();
     mesh.validate().unwrap();
     assert_eq!(mesh.parts.len(), 13);
@@ -85,7 +75,7 @@ fn hotdog_ground_truth_matches_readme_and_materials_json() {
 #[test]
 fn plain_obj_loader_reads_the_mtl_like_materials_json() {
     // The MTL's Pr/Pm/Kd/map_Kd must give the same materials as materials.json for this scene.
-    let Some(gt) = gt_dir() else { return };
+    let Some(gt) = gt_dir("geometry_hotdog_gt::plain_obj_loader_reads_the_mtl_like_materials_json") else { return };
     let from_mtl = load_obj(gt.join("hotdog.obj")).unwrap();
     let from_json = load_ground_truth(&gt).unwrap();
     assert_eq!(from_mtl.parts.len(), from_json.parts.len());

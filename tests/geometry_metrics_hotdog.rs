@@ -3,21 +3,20 @@
 //! numbers and the time. Ignored in the suite (it reads 100 depth maps and 100 alphas):
 //! `cargo test --release --test geometry_metrics_hotdog -- --ignored --nocapture`.
 
+mod common;
+
 use std::time::Instant;
 
 use reconstruct::eval::geometry_metrics::{geometry_metrics, load_judge_views, view_metrics, GeometryMetricOptions};
 use reconstruct::geometry::bvh::Bvh;
 use reconstruct::geometry::ground_truth::load_ground_truth;
-use reconstruct::scene::{shared_dir, Dataset};
+use reconstruct::scene::Dataset;
 
 #[test]
 #[ignore = "reads the shared hotdog (100 depth maps); run with --ignored --nocapture"]
 fn hotdog_ground_truth_against_itself() {
-    let root = shared_dir().join("data/nerfactor/hotdog_2163");
-    if !root.join("gt/hotdog.obj").exists() {
-        println!("skipped: {} not found (set RECONSTRUCT_SHARED_DIR)", root.display());
-        return;
-    }
+    let Some(shared) = common::shared_data::require("geometry_metrics_hotdog::hotdog_ground_truth_against_itself (ignored by default)") else { return };
+    let root = shared.join("data/nerfactor/hotdog_2163");
     let t = Instant::now();
     let dataset = Dataset::load(&root).unwrap();
     let gt = load_ground_truth(root.join("gt")).unwrap();

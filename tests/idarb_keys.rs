@@ -2,13 +2,14 @@
 //! constructed against a VarBuilder that records every requested key and shape (no weights
 //! needed), and the record is compared with `../shared/idarb/unet_keys_full.txt` (all 798 official
 //! `state_dict` keys) and the VAE facts. Skips when the shared folder is absent.
+
+mod common;
 use candle_core::{DType, Device, Shape, Tensor};
 use candle_nn::var_builder::SimpleBackend;
 use candle_nn::{Init, VarBuilder};
 use reconstruct::prior::idarb::autoencoder_kl::{AutoencoderKL, AutoencoderKLConfig};
 use reconstruct::prior::idarb::unet_dr2d_condition::{UNetDR2DConditionModel, UNetDR2DConfig};
 use std::collections::BTreeMap;
-use std::path::PathBuf;
 use std::sync::{Arc, Mutex};
 
 /// Hands out broadcast zeros (no allocation) and remembers every request.
@@ -28,9 +29,7 @@ impl SimpleBackend for Recorder {
     }
 }
 
-fn shared_dir() -> PathBuf {
-    std::env::var_os("RECONSTRUCT_SHARED_DIR").map(PathBuf::from).unwrap_or_else(|| PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared"))
-}
+use common::shared_data::shared_dir;
 
 fn record<T>(build: impl FnOnce(VarBuilder) -> candle_core::Result<T>) -> BTreeMap<String, Vec<usize>> {
     let log = Arc::new(Mutex::new(BTreeMap::new()));
@@ -42,12 +41,12 @@ fn record<T>(build: impl FnOnce(VarBuilder) -> candle_core::Result<T>) -> BTreeM
 
 #[test]
 fn full_unet_requests_exactly_the_official_keys_and_shapes() {
+    if common::shared_data::require("idarb_keys::full_unet_requests_exactly_the_official_keys_and_shapes").is_none() {
+        return;
+    }
     let dir = shared_dir().join("idarb");
     let keys_path = dir.join("unet_keys_full.txt");
-    let Ok(text) = std::fs::read_to_string(&keys_path) else {
-        println!("skipped: {} not found", keys_path.display());
-        return;
-    };
+    let text = std::fs::read_to_string(&keys_path).expect("registered as present");
     let official: BTreeMap<String, Vec<usize>> = text
         .lines()
         .filter(|l| !l.trim().is_empty())
@@ -77,11 +76,11 @@ fn full_unet_requests_exactly_the_official_keys_and_shapes() {
 
 #[test]
 fn full_vae_has_the_sd_layout() {
-    let path = shared_dir().join("idarb/vae_config_full.json");
-    let Ok(config) = AutoencoderKLConfig::from_json_file(&path) else {
-        println!("skipped: {} not found", path.display());
+    if common::shared_data::require("idarb_keys::full_vae_has_the_sd_layout").is_none() {
         return;
-    };
+    }
+    let path = shared_dir().join("idarb/vae_config_full.json");
+    let config = AutoencoderKLConfig::from_json_file(&path).expect("registered as present");
     assert_eq!(config, AutoencoderKLConfig::sd21());
     let requested = record(|vb| AutoencoderKL::new(vb, config));
     let params: usize = requested.values().map(|s| s.iter().product::<usize>()).sum();

@@ -2,6 +2,8 @@
 //! (`../shared/idarb/scheduler_table.json`, read at test time; skipped when absent), and against
 //! diffusers' schedule for many step counts (`tests/fixtures/idarb/ddim_schedules.json`, made by
 //! `tools/idarb/make_schedule_fixture.py`): the step rule exactly, ᾱ within float32 resolution.
+
+mod common;
 use reconstruct::prior::idarb::scheduling_ddim::{DdimScheduler, ALPHA_AGREEMENT};
 use serde_json::Value;
 use std::path::PathBuf;
@@ -12,12 +14,9 @@ fn floats(v: &Value, key: &str) -> Vec<f64> {
 
 #[test]
 fn schedule_matches_official_table() {
-    let shared = std::env::var_os("RECONSTRUCT_SHARED_DIR").map(PathBuf::from).unwrap_or_else(|| PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared"));
+    let Some(shared) = common::shared_data::require("idarb_schedule::schedule_matches_official_table") else { return };
     let path = shared.join("idarb/scheduler_table.json");
-    let Ok(text) = std::fs::read_to_string(&path) else {
-        println!("skipped: {} not found", path.display());
-        return;
-    };
+    let text = std::fs::read_to_string(&path).expect("registered as present");
     let table: Value = serde_json::from_str(&text).expect("table json");
     let steps = table["num_inference_steps"].as_u64().expect("num_inference_steps") as usize;
     let s = DdimScheduler::idarb(steps);

@@ -2,7 +2,7 @@
 //! ("Probe orientation" table), and the light pipeline on a real probe. Skips when the shared data
 //! directory is absent. The probe itself is never copied into the project (licence unknown).
 
-use std::path::PathBuf;
+mod common;
 
 use glam::Vec3;
 use reconstruct::image::Image;
@@ -10,19 +10,9 @@ use reconstruct::light::latlong;
 use reconstruct::light::{CubeMap, LightSampler, SplitSumLight};
 use reconstruct::rng::Sampler;
 
-fn shared_dir() -> PathBuf {
-    std::env::var_os("RECONSTRUCT_SHARED_DIR")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("..").join("shared"))
-}
-
 /// The probe at strength 1 as a 3-channel linear image, or None (with a message) when absent.
-fn load_probe() -> Option<Image> {
-    let path = shared_dir().join("data/probes/2163.hdr");
-    if !path.exists() {
-        println!("skipped: {} not found", path.display());
-        return None;
-    }
+fn load_probe(test: &str) -> Option<Image> {
+    let path = common::shared_data::require(test)?.join("data/probes/2163.hdr");
     let img = image::open(&path).unwrap_or_else(|e| panic!("cannot decode {}: {e}", path.display())).to_rgb32f();
     let (w, h) = img.dimensions();
     Some(Image { width: w as usize, height: h as usize, channels: 3, data: img.into_raw() })
@@ -48,7 +38,7 @@ fn footprint_average(probe: &Image, dir: Vec3) -> Vec3 {
 
 #[test]
 fn readme_probe_values_and_orientation() {
-    let Some(probe) = load_probe() else { return };
+    let Some(probe) = load_probe("light_probe_2163::readme_probe_values_and_orientation") else { return };
     assert_eq!((probe.width, probe.height), (32, 16));
     // (u, v) and the "Blender probe value" column of the README table (strength 1, 5 digits).
     let table: [(&str, f32, f32, [f32; 3]); 9] = [
@@ -87,7 +77,7 @@ fn readme_probe_values_and_orientation() {
 
 #[test]
 fn light_pipeline_on_the_real_probe() {
-    let Some(mut probe) = load_probe() else { return };
+    let Some(mut probe) = load_probe("light_probe_2163::light_pipeline_on_the_real_probe") else { return };
     for v in probe.data.iter_mut() {
         *v *= 3.0; // strength 3, as the hotdog scene uses it
     }

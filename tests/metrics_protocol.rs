@@ -1,21 +1,19 @@
 //! The NeRFactor evaluation protocol's building blocks on real ground truth: the albedo scale
 //! recovers a known per-channel gain, and relit images composite over white.
 
-use reconstruct::eval::metrics::{albedo_scale, mask_from_alpha, over_white, psnr, scale_colour};
-use reconstruct::scene::{shared_dir, Dataset};
+mod common;
 
-fn hotdog() -> Option<Dataset> {
-    let dir = shared_dir().join("data/nerfactor/hotdog_2163");
-    if !dir.is_dir() {
-        println!("skipped: shared hotdog data not found at {}", dir.display());
-        return None;
-    }
+use reconstruct::eval::metrics::{albedo_scale, mask_from_alpha, over_white, psnr, scale_colour};
+use reconstruct::scene::Dataset;
+
+fn hotdog(test: &str) -> Option<Dataset> {
+    let dir = common::shared_data::require(test)?.join("data/nerfactor/hotdog_2163");
     Some(Dataset::load(&dir).unwrap())
 }
 
 #[test]
 fn albedo_scale_undoes_a_known_gain_on_the_first_val_view() {
-    let Some(ds) = hotdog() else { return };
+    let Some(ds) = hotdog("metrics_protocol::albedo_scale_undoes_a_known_gain_on_the_first_val_view") else { return };
     let gt = ds.val[0].load_albedo().unwrap();
     let gain = [0.5, 0.8, 1.25];
     let pred = scale_colour(&gt, gain);
@@ -32,7 +30,7 @@ fn albedo_scale_undoes_a_known_gain_on_the_first_val_view() {
 
 #[test]
 fn relit_ground_truth_over_white_has_a_white_background() {
-    let Some(ds) = hotdog() else { return };
+    let Some(ds) = hotdog("metrics_protocol::relit_ground_truth_over_white_has_a_white_background") else { return };
     let relit = ds.test[1].load_relit("sunset").unwrap();
     let composed = over_white(&relit, &relit);
     let alpha = relit.channel(3);

@@ -4,6 +4,8 @@
 //! 0.033). LEVEL 0 reproduces the oracle, and errors grow with the level (checked on the embedded
 //! default scene too, so CI exercises the simulator without the shared data).
 
+mod common;
+
 use anyhow::Result;
 use reconstruct::eval::label_metrics::{masked_mse, normal_cosine_similarity, scale_invariant_albedo_psnr};
 use reconstruct::prior::idarb::labels::ViewLabels;
@@ -21,10 +23,10 @@ struct Scores {
 /// (scores, simulated labels, ground-truth labels).
 type Measured = (Scores, Vec<ViewLabels>, Vec<ViewLabels>);
 
-fn measure(scene: &str, level: f64, views: &[usize]) -> Result<Option<Measured>> {
+/// `test` names the calling test (for the shared-data registry when `scene` is not generated).
+fn measure(test: &str, scene: &str, level: f64, views: &[usize]) -> Result<Option<Measured>> {
     let spec = SceneSpec::find(scene)?;
-    if !spec.data_dir.exists() && spec.generator.is_none() {
-        eprintln!("skipped: {} not found", spec.data_dir.display());
+    if spec.generator.is_none() && common::shared_data::require(&format!("prior_sim_calibration::{test}")).is_none() {
         return Ok(None);
     }
     let dataset = spec.load_dataset()?;
@@ -50,7 +52,7 @@ fn within(got: f64, want: f64, what: &str) {
 
 #[test]
 fn level_one_matches_idarbs_published_accuracy_on_the_hotdog() -> Result<()> {
-    let Some((s, _, _)) = measure("nerfactor_hotdog", 1.0, &[0, 13, 27, 41, 58, 72, 86, 99])? else { return Ok(()) };
+    let Some((s, _, _)) = measure("level_one_matches_idarbs_published_accuracy_on_the_hotdog", "nerfactor_hotdog", 1.0, &[0, 13, 27, 41, 58, 72, 86, 99])? else { return Ok(()) };
     eprintln!("measured: albedo {:.3} dB, normal cos {:.4}, metallic MSE {:.4}, roughness MSE {:.4}", s.albedo_psnr, s.normal_cos, s.metallic_mse, s.roughness_mse);
     within(s.albedo_psnr, 33.62, "scale-invariant albedo PSNR (dB)");
     within(s.normal_cos, 0.941, "normal cosine similarity");
@@ -62,14 +64,14 @@ fn level_one_matches_idarbs_published_accuracy_on_the_hotdog() -> Result<()> {
 #[test]
 fn level_zero_is_the_oracle_and_errors_grow_with_the_level() -> Result<()> {
     let views = [0, 9, 21];
-    let Some((_, zero, truth)) = measure("default", 0.0, &views)? else { return Ok(()) };
+    let Some((_, zero, truth)) = measure("", "default", 0.0, &views)? else { return Ok(()) };
     for (l, t) in zero.iter().zip(&truth) {
         for (a, b) in [(&l.albedo, &t.albedo), (&l.normal, &t.normal), (&l.roughness, &t.roughness), (&l.metallic, &t.metallic)] {
             let worst = a.data.iter().zip(&b.data).map(|(x, y)| (x - y).abs()).fold(0.0f32, f32::max);
             assert!(worst < 1e-4, "level 0 differs from the oracle by {worst}");
         }
     }
-    let (one, two) = (measure("default", 1.0, &views)?.expect("scene").0, measure("default", 2.0, &views)?.expect("scene").0);
+    let (one, two) = (measure("", "default", 1.0, &views)?.expect("scene").0, measure("", "default", 2.0, &views)?.expect("scene").0);
     assert!(two.albedo_psnr < one.albedo_psnr && two.normal_cos < one.normal_cos, "albedo/normal error did not grow");
     assert!(two.metallic_mse > one.metallic_mse && two.roughness_mse > one.roughness_mse, "metallic/roughness error did not grow");
     Ok(())

@@ -3,6 +3,8 @@
 //! interreflection effect, and the probe orientation against where the bright side and the
 //! shadows fall.
 
+mod common;
+
 use glam::Vec3;
 use reconstruct::jobs::render::protocol_psnr;
 use reconstruct::geometry::bvh::Bvh;
@@ -22,13 +24,10 @@ struct Hotdog {
     probe: Image,
 }
 
-fn hotdog() -> Option<Hotdog> {
-    let dir = shared_dir().join("data/nerfactor/hotdog_2163");
-    let probe = shared_dir().join("data/probes/2163.hdr");
-    if !dir.exists() || !probe.exists() {
-        println!("skipped: {} or {} not found", dir.display(), probe.display());
-        return None;
-    }
+fn hotdog(test: &str) -> Option<Hotdog> {
+    let shared = common::shared_data::require(test)?;
+    let dir = shared.join("data/nerfactor/hotdog_2163");
+    let probe = shared.join("data/probes/2163.hdr");
     let dataset = Dataset::load(&dir).expect("hotdog dataset loads");
     let mesh = load_ground_truth(dir.join("gt")).expect("hotdog gt loads");
     let bvh = Bvh::build(&mesh);
@@ -75,7 +74,7 @@ fn ground_truth_scores(h: &Hotdog, effects: Effects) -> Vec<f64> {
 
 #[test]
 fn ground_truth_render_matches_dataset_per_view() {
-    let Some(h) = hotdog() else { return };
+    let Some(h) = hotdog("render_hotdog::ground_truth_render_matches_dataset_per_view") else { return };
     let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len() as f64;
     let direct = ground_truth_scores(&h, Effects::DIRECT);
     let bounced = ground_truth_scores(&h, Effects::with_bounces(3));
@@ -94,7 +93,7 @@ fn ground_truth_render_matches_dataset_per_view() {
 
 #[test]
 fn probe_orientation_agrees_with_relit_ground_truth() {
-    let Some(h) = hotdog() else { return };
+    let Some(h) = hotdog("render_hotdog::probe_orientation_agrees_with_relit_ground_truth") else { return };
     let settings = RenderSettings { mode: ShadingMode::MonteCarlo, spp: 16, supersample: 1, seed: 1, effects: Effects::DIRECT };
     let right = PreparedLight::new(CubeMap::from_latlong(&h.probe, 32));
     let wrong = PreparedLight::new(CubeMap::from_latlong(&half_turn(&h.probe), 32));

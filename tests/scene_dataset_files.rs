@@ -266,3 +266,24 @@ fn corrupt_png_is_named() {
     let msg = error_text(Dataset::load(&root));
     assert!(msg.contains("train_000/roughness.png"), "{msg}");
 }
+
+/// A `transform_matrix` that is not a rigid camera pose (scaled, sheared, mirrored) is refused,
+/// naming the transforms file and the frame; a pose rounded to JSON's digits passes.
+#[test]
+fn a_camera_matrix_that_is_not_rigid_is_refused_naming_the_file_and_frame() {
+    for (tag, bad, needle) in [
+        ("scaled", c2w(1) * Mat4::from_scale(Vec3::splat(1.05)), "not orthonormal"),
+        ("sheared", Mat4::from_cols(c2w(1).x_axis, c2w(1).y_axis + 0.2 * c2w(1).x_axis, c2w(1).z_axis, c2w(1).w_axis), "not orthonormal"),
+        ("mirrored", c2w(1) * Mat4::from_scale(Vec3::new(1.0, 1.0, -1.0)), "determinant"),
+    ] {
+        let root = nerfactor_dataset(&format!("rigid-{tag}"), false);
+        let file = root.join("transforms_train.json");
+        let mut json: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&file).unwrap()).unwrap();
+        json["frames"][1]["transform_matrix"] = serde_json::json!(rows(bad));
+        std::fs::write(&file, json.to_string()).unwrap();
+        let msg = error_text(Dataset::load(&root));
+        assert!(msg.contains("transforms_train.json") && msg.contains("frame 1") && msg.contains("train_001") && msg.contains(needle), "{tag}: {msg}");
+    }
+    // The unmodified poses are look-at frames written with f32's shortest round-trip digits: accepted.
+    Dataset::load(&nerfactor_dataset("rigid-ok", false)).unwrap();
+}

@@ -2,30 +2,27 @@
 //! facts that do not come from the camera code (depth map, scene bounding box, the GT mesh's
 //! silhouette, the README's statements). Skips when the shared data folder is absent.
 
+mod common;
+
 use std::path::PathBuf;
 
 use glam::{Vec2, Vec3};
-use reconstruct::scene::{shared_dir, Dataset, Layout, View};
+use reconstruct::scene::{Dataset, Layout, View};
 
 const TEST_PROBES: [&str; 8] = ["city", "courtyard", "forest", "interior", "night", "studio", "sunrise", "sunset"];
 
-fn hotdog_dir() -> Option<PathBuf> {
-    let dir = shared_dir().join("data/nerfactor/hotdog_2163");
-    if dir.join("transforms_train.json").is_file() {
-        Some(dir)
-    } else {
-        println!("skipped: shared hotdog data not found at {} (set RECONSTRUCT_SHARED_DIR)", dir.display());
-        None
-    }
+fn hotdog_dir(test: &str) -> Option<PathBuf> {
+    Some(common::shared_data::require(&format!("scene_hotdog::{test}"))?.join("data/nerfactor/hotdog_2163"))
 }
 
-fn load() -> Option<Dataset> {
-    hotdog_dir().map(|d| Dataset::load(&d).expect("hotdog dataset loads"))
+/// The shared hotdog for test `test` (None: skipped, see tests/common/shared_data.rs).
+fn load(test: &str) -> Option<Dataset> {
+    hotdog_dir(test).map(|d| Dataset::load(&d).expect("hotdog dataset loads"))
 }
 
 #[test]
 fn hotdog_has_the_documented_views_sizes_and_files() {
-    let Some(ds) = load() else { return };
+    let Some(ds) = load("hotdog_has_the_documented_views_sizes_and_files") else { return };
     assert_eq!(ds.layout, Layout::NeRFactor);
     assert_eq!((ds.train.len(), ds.val.len(), ds.test.len()), (100, 8, 8));
     assert_eq!(ds.train[0].name, "train_000");
@@ -51,7 +48,7 @@ fn hotdog_has_the_documented_views_sizes_and_files() {
 
 #[test]
 fn metadata_repeats_the_transforms() {
-    let Some(ds) = load() else { return };
+    let Some(ds) = load("metadata_repeats_the_transforms") else { return };
     for v in ds.all_views() {
         let m = v.metadata.as_ref().expect("metadata.json present");
         let mat = m.cam_transform_mat.expect("cam_transform_mat present");
@@ -65,7 +62,7 @@ fn metadata_repeats_the_transforms() {
 
 #[test]
 fn cameras_sit_on_the_documented_sphere_and_look_at_the_origin() {
-    let Some(ds) = load() else { return };
+    let Some(ds) = load("cameras_sit_on_the_documented_sphere_and_look_at_the_origin") else { return };
     for v in ds.all_views() {
         let o = v.camera.origin();
         assert!((o.length() - 4.03).abs() < 0.01, "{}: distance {}", v.name, o.length());
@@ -89,7 +86,7 @@ fn back_project(v: &View, i: usize, j: usize, z: f32) -> Vec3 {
 
 #[test]
 fn depth_back_projects_into_the_scene_box_and_projects_back_to_its_pixel() {
-    let Some(ds) = load() else { return };
+    let Some(ds) = load("depth_back_projects_into_the_scene_box_and_projects_back_to_its_pixel") else { return };
     let (lo, hi) = (Vec3::new(-1.198, -1.286, -0.190), Vec3::new(1.198, 1.110, 0.312));
     let mut union = (Vec3::splat(f32::INFINITY), Vec3::splat(f32::NEG_INFINITY));
     for v in [&ds.train[0], &ds.train[37], &ds.val[3], &ds.test[5]] {
@@ -132,12 +129,8 @@ fn obj_vertices(path: &std::path::Path) -> Vec<Vec3> {
 
 #[test]
 fn gt_mesh_vertices_project_onto_the_silhouette_and_behind_the_visible_depth() {
-    let Some(ds) = load() else { return };
+    let Some(ds) = load("gt_mesh_vertices_project_onto_the_silhouette_and_behind_the_visible_depth") else { return };
     let obj = ds.root.join("gt/hotdog.obj");
-    if !obj.is_file() {
-        println!("skipped: {} not found", obj.display());
-        return;
-    }
     let vertices = obj_vertices(&obj);
     assert_eq!(vertices.len(), 38_217);
     for v in [&ds.train[0], &ds.train[63], &ds.test[2]] {
@@ -173,7 +166,7 @@ fn gt_mesh_vertices_project_onto_the_silhouette_and_behind_the_visible_depth() {
 
 #[test]
 fn ground_truth_maps_decode_to_sensible_values() {
-    let Some(ds) = load() else { return };
+    let Some(ds) = load("ground_truth_maps_decode_to_sensible_values") else { return };
     let v = &ds.train[0];
     let rgba = v.load_rgba().unwrap();
     let albedo = v.load_albedo().unwrap();

@@ -1,11 +1,13 @@
 //! Picture files: sRGB through 8-bit PNG, EXR round trips, and the Radiance probes.
 
+mod common;
+
 use std::path::PathBuf;
 
 use rand::{Rng, SeedableRng};
 use reconstruct::image::io::{read_exr, read_hdr, read_png, read_probe, write_exr, write_png};
 use reconstruct::image::Image;
-use reconstruct::scene::{crate_dir, shared_dir};
+use reconstruct::scene::crate_dir;
 
 fn temp_file(name: &str) -> PathBuf {
     let dir = std::env::temp_dir().join(format!("reconstruct-scene-io-{}", std::process::id()));
@@ -51,6 +53,7 @@ fn exr_keeps_hdr_values_exactly() {
 #[test]
 fn the_cc0_fixture_probes_are_16x32_positive_radiance() {
     let dir = crate_dir().join("tests/fixtures/probes");
+    let shared_copies = common::shared_data::require("scene_io::the_cc0_fixture_probes_are_16x32_positive_radiance (byte copies of the shared probes)");
     for name in ["city", "courtyard", "forest", "interior", "night", "studio", "sunrise", "sunset"] {
         let path = dir.join(format!("{name}.hdr"));
         let img = read_hdr(&path).unwrap();
@@ -58,8 +61,8 @@ fn the_cc0_fixture_probes_are_16x32_positive_radiance() {
         assert!(img.data.iter().all(|v| v.is_finite() && *v > 0.0), "{name}: non-positive texel");
         assert_eq!(read_probe(&path).unwrap(), img);
         // The fixtures are byte copies of the shared probes.
-        let shared = shared_dir().join(format!("data/probes/{name}.hdr"));
-        if shared.is_file() {
+        if let Some(shared) = shared_copies.as_ref() {
+            let shared = shared.join(format!("data/probes/{name}.hdr"));
             assert_eq!(std::fs::read(&shared).unwrap(), std::fs::read(&path).unwrap(), "{name}");
         }
     }
@@ -68,11 +71,8 @@ fn the_cc0_fixture_probes_are_16x32_positive_radiance() {
 
 #[test]
 fn training_probe_2163_matches_the_readme_values() {
-    let path = shared_dir().join("data/probes/2163.hdr");
-    if !path.is_file() {
-        println!("skipped: {} not found", path.display());
-        return;
-    }
+    let Some(shared) = common::shared_data::require("scene_io::training_probe_2163_matches_the_readme_values") else { return };
+    let path = shared.join("data/probes/2163.hdr");
     let img = read_probe(&path).unwrap();
     assert_eq!((img.width, img.height), (32, 16));
     // README, "Checks": the probe values Blender's convention gives. Texels away from bright
@@ -95,11 +95,8 @@ fn training_probe_2163_matches_the_readme_values() {
 
 #[test]
 fn a_shared_depth_map_reads_as_one_channel() {
-    let path = shared_dir().join("data/nerfactor/hotdog_2163/train_000/depth.exr");
-    if !path.is_file() {
-        println!("skipped: {} not found", path.display());
-        return;
-    }
+    let Some(shared) = common::shared_data::require("scene_io::a_shared_depth_map_reads_as_one_channel") else { return };
+    let path = shared.join("data/nerfactor/hotdog_2163/train_000/depth.exr");
     let d = read_exr(&path).unwrap();
     assert_eq!((d.width, d.height, d.channels), (256, 256, 1));
     // Cameras are 4.03 from the origin and the scene fits in a ~1.3 radius: depths lie in between.

@@ -1,5 +1,7 @@
 //! Scene spec files: the shipped hotdog spec, probe lookup with the fixture fallback, overrides.
 
+mod common;
+
 use std::path::PathBuf;
 
 use reconstruct::render::effects::Switch;
@@ -28,14 +30,12 @@ fn the_hotdog_spec_names_the_shared_data_and_the_nerfactor_protocol() {
         assert_eq!((p.image.width, p.image.height, p.strength), (32, 16, 1.0));
     }
 
-    if spec.data_dir.is_dir() {
+    if common::shared_data::require("scene_spec::the_hotdog_spec_names_the_shared_data_and_the_nerfactor_protocol").is_some() {
         let ds = spec.load_dataset().unwrap();
         assert_eq!(ds.train.len(), 100);
         let probe = spec.load_train_probe().unwrap();
         assert_eq!(probe.name, "2163");
         assert_eq!(probe.radiance_image().pixel(0, 5)[0], probe.image.pixel(0, 5)[0] * 3.0);
-    } else {
-        println!("skipped: shared data not found at {}", spec.data_dir.display());
     }
 }
 

@@ -69,7 +69,20 @@ pub fn load(dir: &Path) -> Result<Option<Checkpoint>> {
     }
     let text = std::fs::read_to_string(&progress_path).with_context(|| format!("cannot read {}", progress_path.display()))?;
     let progress: Progress = serde_json::from_str(&text).with_context(|| format!("{} is not a valid checkpoint progress file", progress_path.display()))?;
-    let mut tensors = candle_core::safetensors::load(&state, &Device::Cpu).with_context(|| format!("cannot read checkpoint {}", state.display()))?;
+    let mut tensors = crate::image::safe_decode::guard(&state, "checkpoint", || {
+        candle_core::safetensors::load(&state, &Device::Cpu).with_context(|| format!("cannot read checkpoint {}", state.display()))
+    })?;
+    // Resuming from NaN or Inf would make every later loss NaN: refuse, naming the tensor.
+    for (key, t) in &tensors {
+        let values: Vec<f32> = t
+            .to_dtype(candle_core::DType::F32)
+            .and_then(|t| t.flatten_all())
+            .and_then(|t| t.to_vec1())
+            .with_context(|| format!("checkpoint {}: tensor {key:?} is not a float tensor", state.display()))?;
+        if let Some(k) = values.iter().position(|v| !v.is_finite()) {
+            bail!("checkpoint {}: tensor {key:?} holds {} at element {k}", state.display(), values[k]);
+        }
+    }
     let mut take = |k: &str| tensors.remove(k).with_context(|| format!("checkpoint {} has no tensor {k:?}", state.display()));
     let (kd, ks, light) = (take("kd")?, take("ks")?, take("light")?);
     let mut slots = Vec::new();

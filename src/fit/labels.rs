@@ -38,7 +38,9 @@ impl PixelLabels {
                 img.width,
                 img.height
             );
+            img.require_finite(&format!("labels of view {view}: {what} map"))?;
         }
+        labels.normal.require_finite(&format!("labels of view {view}: normal map"))?;
         Ok(PixelLabels {
             albedo_srgb: gather(&labels.albedo, pixels, 3, "albedo", view)?,
             roughness: gather(&labels.roughness, pixels, 1, "roughness", view)?,

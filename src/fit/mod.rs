@@ -15,3 +15,4 @@ pub mod objective;
 pub mod parameters;
 pub mod pixel_scatter;
 pub mod training_view;
+pub mod view_screening;

@@ -18,6 +18,7 @@ use crate::scene::dataset::View;
 use crate::scene::Camera;
 
 use super::labels::PixelLabels;
+use super::view_screening::{silhouette_disagreement, MASK_THRESHOLD};
 
 #[derive(Clone)]
 pub struct TrainingView {
@@ -37,6 +38,12 @@ pub struct TrainingView {
     pub target: Tensor,
     /// Prior labels at the covered pixels, when this view has them.
     pub labels: Option<PixelLabels>,
+    /// Pixels of the target whose alpha is at least `view_screening::MASK_THRESHOLD` (0: the object is
+    /// not in the view).
+    pub mask_pixels: usize,
+    /// Share of silhouette pixels on which the mesh and the mask disagree
+    /// (`view_screening::silhouette_disagreement`).
+    pub silhouette_disagreement: f32,
 }
 
 impl TrainingView {
@@ -44,6 +51,7 @@ impl TrainingView {
     /// `downscale` > 1 uses a camera that many times smaller and a box-filtered target.
     pub fn new(view: &View, index: usize, mesh: &Mesh, bvh: &Bvh, downscale: usize) -> Result<TrainingView> {
         let rgba = view.load_rgba().with_context(|| format!("training view {}", view.name))?;
+        rgba.require_finite(&format!("training view {} ({})", view.name, view.image_path.display()))?;
         let s = downscale.max(1);
         if s == 1 {
             return Self::from_image(&view.name, &view.camera, index, &rgba, mesh, bvh);
@@ -70,6 +78,7 @@ impl TrainingView {
             camera.width,
             camera.height
         );
+        rgba.require_finite(&format!("training view {name}: target image"))?;
         let gbuf = GBuffer::trace(mesh, bvh, camera);
         let (mut pixels, mut surfels, mut uv, mut target) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
         for (i, s) in gbuf.surfels.iter().enumerate() {
@@ -81,6 +90,10 @@ impl TrainingView {
             }
         }
         let n = pixels.len();
+        let alpha: Vec<f32> = rgba.data.chunks_exact(4).map(|p| p[3]).collect();
+        let mesh_covered: Vec<bool> = gbuf.surfels.iter().map(Option::is_some).collect();
+        let mask_pixels = alpha.iter().filter(|&&a| a >= MASK_THRESHOLD).count();
+        let silhouette_disagreement = silhouette_disagreement(&mesh_covered, &alpha, camera.width, camera.height);
         Ok(TrainingView {
             name: name.to_string(),
             camera: camera.clone(),
@@ -91,6 +104,8 @@ impl TrainingView {
             origin: gbuf.origin,
             target: Tensor::from_vec(target, (n, 1, 4), &Device::Cpu)?,
             labels: None,
+            mask_pixels,
+            silhouette_disagreement,
         })
     }
 

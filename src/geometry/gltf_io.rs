@@ -13,6 +13,7 @@ use serde_json::json;
 
 use super::mesh::{Mesh, Part};
 use crate::color::srgb_to_linear;
+use crate::image::safe_decode::guard;
 use crate::image::Image;
 use crate::material::{BaseColor, PartMaterial, Scalar};
 
@@ -143,6 +144,9 @@ impl Loader<'_> {
         let local_tris: Vec<[u32; 3]> =
             indices.chunks_exact(3).map(|t| if mirror { [t[0], t[2], t[1]] } else { [t[0], t[1], t[2]] }).collect();
         let positions: Vec<Vec3> = positions.iter().map(|&p| transform.transform_point3(p)).collect();
+        if let Some(k) = positions.iter().position(|p| !p.is_finite()) {
+            bail!("{}: vertex {k}: position {} (after the node transforms) is not finite", ctx(), positions[k]);
+        }
         let normal_matrix = Mat3::from_mat4(transform).inverse().transpose();
         let computed = Mesh::area_weighted_normals(&positions, &local_tris);
         let normals: Vec<Vec3> = match reader.read_normals() {
@@ -156,6 +160,9 @@ impl Loader<'_> {
             reader.read_tex_coords(0).map(|t| t.into_f32().map(|[u, v]| Vec2::new(u, 1.0 - v)).collect());
         if uvs.as_ref().is_some_and(|u| u.len() != n) {
             bail!("{}: TEXCOORD_0 has a different count than POSITION", ctx());
+        }
+        if let Some((k, uv)) = uvs.iter().flatten().enumerate().find(|(_, t)| !t.is_finite()) {
+            bail!("{}: vertex {k}: TEXCOORD_0 {uv} is not finite", ctx());
         }
 
         let key = prim.material().index();
@@ -196,6 +203,11 @@ impl Loader<'_> {
 /// Not read: normal/occlusion/emissive maps, texCoord sets other than 0.
 pub fn load_gltf(path: impl AsRef<Path>) -> Result<Mesh> {
     let path = path.as_ref();
+    // The gltf crate indexes accessors and buffers as the file says; a corrupt file may panic inside it.
+    guard(path, "glTF file", || load_gltf_unguarded(path))
+}
+
+fn load_gltf_unguarded(path: &Path) -> Result<Mesh> {
     let (doc, buffers, images) = gltf::import(path).with_context(|| format!("reading glTF file {}", path.display()))?;
     let mut loader = Loader { path, buffers: &buffers, images: &images, mesh: Mesh::default(), material_map: HashMap::new() };
     match doc.default_scene().or_else(|| doc.scenes().next()) {

@@ -143,7 +143,21 @@ const SEEN_INSET_PIXELS: f32 = 1.0;
 pub fn visual_hull(views: &[MaskView], opts: &HullOptions) -> Result<Hull> {
     let start = Instant::now();
     check_options(opts)?;
-    check_masks(views, opts.threshold)?;
+    // A view whose mask is empty does not show the object (it would carve everything away): skip it.
+    let empty = check_masks(views, opts.threshold)?;
+    let kept: Vec<MaskView>;
+    let views = if empty.is_empty() {
+        views
+    } else {
+        eprintln!(
+            "warning: visual hull: skipping {} of {} views whose mask is empty (the object is not in them): {}",
+            empty.len(),
+            views.len(),
+            empty.iter().map(|(_, label)| label.as_str()).collect::<Vec<_>>().join(", ")
+        );
+        kept = views.iter().enumerate().filter(|(i, _)| !empty.iter().any(|(k, _)| k == i)).map(|(_, v)| v.clone()).collect();
+        &kept
+    };
     let fields: Vec<ViewField> = views.par_iter().map(|v| ViewField::new(v, opts.threshold)).collect();
 
     // Coarse: locate the object, grow the box until nothing survives at its faces.
@@ -276,9 +290,10 @@ fn check_options(opts: &HullOptions) -> Result<()> {
     Ok(())
 }
 
-/// Rejects masks that cannot carve: wrong size, all covered (an image without alpha reads as all
-/// opaque) or all empty, naming every such view.
-fn check_masks(views: &[MaskView], threshold: f32) -> Result<()> {
+/// Rejects masks that cannot carve: wrong size or all covered (an image without alpha reads as all
+/// opaque), naming every such view. Empty masks are returned (index, label) for the caller to skip,
+/// unless fewer than 2 views with something in their mask would remain: then they are an error too.
+fn check_masks(views: &[MaskView], threshold: f32) -> Result<Vec<(usize, String)>> {
     if views.len() < 2 {
         bail!("visual hull: needs at least 2 views with masks, got {}", views.len());
     }
@@ -302,8 +317,12 @@ fn check_masks(views: &[MaskView], threshold: f32) -> Result<()> {
         if covered == a.data.len() {
             opaque.push(label(i, v));
         } else if covered == 0 {
-            empty.push(label(i, v));
+            empty.push((i, label(i, v)));
         }
+    }
+    let usable = views.len() - wrong.len() - opaque.len() - empty.len();
+    if wrong.is_empty() && opaque.is_empty() && usable >= 2 {
+        return Ok(empty);
     }
     let mut problems = Vec::new();
     if !wrong.is_empty() {
@@ -316,12 +335,13 @@ fn check_masks(views: &[MaskView], threshold: f32) -> Result<()> {
         ));
     }
     if !empty.is_empty() {
-        problems.push(format!("empty, so they carve everything: {}", empty.join(", ")));
+        let names: Vec<&str> = empty.iter().map(|(_, l)| l.as_str()).collect();
+        problems.push(format!("empty, so they carve everything: {}", names.join(", ")));
     }
-    if !problems.is_empty() {
-        bail!("visual hull: {} of {} views have unusable masks; {}", wrong.len() + opaque.len() + empty.len(), views.len(), problems.join("; "));
+    if usable < 2 {
+        problems.push(format!("{usable} usable view(s) left, and a hull needs at least 2"));
     }
-    Ok(())
+    bail!("visual hull: {} of {} views have unusable masks; {}", wrong.len() + opaque.len() + empty.len(), views.len(), problems.join("; "))
 }
 
 /// One view's silhouette cone as a distance field.
@@ -912,6 +932,24 @@ mod tests {
         let open = visual_hull(&views, &HullOptions { closing_directions: 0, ..HullOptions::default() }).unwrap();
         println!("without closing: {}", open.summary);
         assert!(open.bounds.0.z < bottom - 0.3, "the plain intersection of cones reaches only z = {}", open.bounds.0.z);
+    }
+
+    /// One empty mask (the object left that view) is skipped: the hull is the one of the other views.
+    /// When every mask is empty there is nothing to build from: an error naming them.
+    #[test]
+    fn a_view_with_an_empty_mask_is_skipped_and_all_empty_is_an_error() {
+        let cameras = cameras_towards(&fibonacci_sphere(8), 4.0, 24);
+        let mut views = views_of(&cameras, 1, &sphere_hit(Vec3::ZERO, 1.0));
+        let without: Vec<MaskView> = views.iter().enumerate().filter(|(i, _)| *i != 2).map(|(_, v)| v.clone()).collect();
+        views[2].alpha.data.fill(0.0);
+        let with_empty = visual_hull(&views, &HullOptions::default()).expect("one empty mask is skipped");
+        let reference = visual_hull(&without, &HullOptions::default()).expect("test setup");
+        assert_eq!(with_empty.mesh.positions, reference.mesh.positions, "the empty view must not carve");
+        for v in &mut views {
+            v.alpha.data.fill(0.0);
+        }
+        let err = visual_hull(&views, &HullOptions::default()).unwrap_err().to_string();
+        assert!(err.contains("8 of 8 views") && err.contains("empty") && err.contains("view_002 (#2)"), "{err}");
     }
 
     #[test]

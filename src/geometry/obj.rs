@@ -10,6 +10,7 @@ use glam::{Vec2, Vec3};
 
 use super::mesh::{Mesh, Part};
 use super::texture_file::TextureCache;
+use crate::image::safe_decode::guard;
 use crate::material::{BaseColor, PartMaterial, Scalar};
 
 /// Material of parts whose file names none (Blender's default grey, fairly rough dielectric).
@@ -51,10 +52,10 @@ fn read_obj_geometry(path: &Path) -> Result<ObjGeometry> {
         None => text,
     };
     let dir = path.parent().unwrap_or(Path::new(".")).to_path_buf();
-    let (models, materials) = tobj::load_obj_buf(&mut std::io::BufReader::new(text.as_bytes()), &options, |mtl| {
-        tobj::load_mtl(dir.join(mtl))
-    })
-    .with_context(|| format!("reading OBJ file {}", path.display()))?;
+    let (models, materials) = guard(path, "OBJ file", || {
+        tobj::load_obj_buf(&mut std::io::BufReader::new(text.as_bytes()), &options, |mtl| tobj::load_mtl(dir.join(mtl)))
+            .with_context(|| format!("reading OBJ file {}", path.display()))
+    })?;
     // A missing or broken MTL is not fatal for geometry; parts fall back to the default material.
     let mtl = match materials {
         Ok(m) => m,
@@ -77,6 +78,12 @@ fn read_obj_geometry(path: &Path) -> Result<ObjGeometry> {
         let local_tris: Vec<[u32; 3]> = m.indices.chunks_exact(3).map(|t| [t[0], t[1], t[2]]).collect();
         if let Some(bad) = m.indices.iter().find(|&&i| i as usize >= nv) {
             bail!("OBJ file {}: object {} has a face index {} past its {} vertices", path.display(), model.name, bad, nv);
+        }
+        if let Some(k) = positions.iter().position(|p| !p.is_finite()) {
+            bail!("OBJ file {}: object {}, vertex {k}: position {} is not finite", path.display(), model.name, positions[k]);
+        }
+        if let Some(k) = m.texcoords.chunks_exact(2).position(|t| !(t[0].is_finite() && t[1].is_finite())) {
+            bail!("OBJ file {}: object {}, vertex {k}: texture coordinate {:?} is not finite", path.display(), model.name, &m.texcoords[2 * k..2 * k + 2]);
         }
         let normals: Vec<Vec3> = if m.normals.len() == m.positions.len() {
             // Normalise what the file gives; zero-length file normals fall back to face normals below.
@@ -432,6 +439,21 @@ mod tests {
         let mesh = load_obj(dir.join("q.obj")).expect("test setup");
         assert!(!mesh.parts[0].has_uv && mesh.parts[1].has_uv);
         assert_eq!(mesh.uvs[mesh.triangles[1][0] as usize], Vec2::new(0.1, 0.2));
+        std::fs::remove_dir_all(&dir).ok();
+    }
+
+    #[test]
+    fn non_finite_positions_and_uvs_are_refused_naming_the_file_and_vertex() {
+        let dir = tmp_dir("nan");
+        for (name, text, needle) in [
+            ("p.obj", "o a\nv 0 0 0\nv 1 nan 0\nv 0 1 0\nf 1 2 3\n", "vertex 1: position"),
+            ("i.obj", "o a\nv 0 0 0\nv 1 0 0\nv 0 1 inf\nf 1 2 3\n", "vertex 2: position"),
+            ("t.obj", "o a\nv 0 0 0\nv 1 0 0\nv 0 1 0\nvt 0 0\nvt NaN 0\nvt 0 1\nf 1/1 2/2 3/3\n", "vertex 1: texture coordinate"),
+        ] {
+            std::fs::write(dir.join(name), text).expect("test setup");
+            let msg = format!("{:#}", load_obj(dir.join(name)).unwrap_err());
+            assert!(msg.contains(name) && msg.contains(needle) && msg.contains("not finite"), "{msg}");
+        }
         std::fs::remove_dir_all(&dir).ok();
     }
 

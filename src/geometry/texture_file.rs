@@ -1,6 +1,7 @@
 //! Material texture files for the mesh loaders: sRGB-encoded base-colour images decoded to linear
 //! RGB, and linear single-value images (roughness, metallic) read as stored.
-//! (Read with the `image` crate directly so geometry IO does not depend on `image::io`.)
+//! (Read with the `image` crate directly, through `image::safe_decode`'s size limit and panic guard,
+//! so geometry IO does not depend on `image::io`.)
 
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
@@ -9,11 +10,12 @@ use std::sync::Arc;
 use anyhow::{bail, Context, Result};
 
 use crate::color::{linear_to_srgb, srgb_to_linear};
+use crate::image::safe_decode::decode_with_image_crate;
 use crate::image::Image;
 
 /// Read an sRGB-encoded colour texture (8- or 16-bit; alpha dropped) as a linear RGB image.
 pub fn load_srgb_texture(path: &Path) -> Result<Arc<Image>> {
-    let decoded = image::open(path).with_context(|| format!("reading texture {}", path.display()))?;
+    let decoded = decode_with_image_crate(path, "texture")?;
     let rgb = decoded.to_rgb32f();
     let (width, height) = (rgb.width() as usize, rgb.height() as usize);
     let data = rgb.into_raw().into_iter().map(srgb_to_linear).collect();
@@ -23,7 +25,7 @@ pub fn load_srgb_texture(path: &Path) -> Result<Arc<Image>> {
 /// Read one channel (0 = red or grey, 1 = green, 2 = blue, 3 = alpha) of a texture whose values
 /// are linear (roughness, metallic): 8/16-bit codes divided by their maximum, no transfer curve.
 pub fn load_linear_texture(path: &Path, channel: usize) -> Result<Arc<Image>> {
-    let decoded = image::open(path).with_context(|| format!("reading texture {}", path.display()))?;
+    let decoded = decode_with_image_crate(path, "texture")?;
     // A grey image's value stands for every colour channel (to_rgba32f replicates it).
     if channel > 3 || (channel == 3 && !decoded.color().has_alpha()) {
         bail!("texture {} has no channel {channel} ({:?})", path.display(), decoded.color());

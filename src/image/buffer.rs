@@ -26,6 +26,21 @@ impl Image {
         self.width * self.height
     }
 
+    /// The first NaN or infinite value as (x, y, channel, value), row-major order; None when all are finite.
+    pub fn first_non_finite(&self) -> Option<(usize, usize, usize, f32)> {
+        let c = self.channels.max(1);
+        let w = self.width.max(1);
+        self.data.iter().position(|v| !v.is_finite()).map(|k| ((k / c) % w, k / c / w, k % c, self.data[k]))
+    }
+
+    /// Ok, or an error naming `what` (a file or view) and the first non-finite pixel.
+    pub fn require_finite(&self, what: &str) -> anyhow::Result<()> {
+        match self.first_non_finite() {
+            None => Ok(()),
+            Some((x, y, c, v)) => anyhow::bail!("{what}: pixel ({x}, {y}) channel {c} is {v} (values must be finite)"),
+        }
+    }
+
     pub fn pixel(&self, x: usize, y: usize) -> &[f32] {
         let i = (y * self.width + x) * self.channels;
         &self.data[i..i + self.channels]

@@ -3,5 +3,6 @@
 mod buffer;
 pub mod contact_sheet;
 pub mod io;
+pub mod safe_decode;
 
 pub use buffer::Image;

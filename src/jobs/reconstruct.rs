@@ -24,6 +24,7 @@ use crate::prior::idarb::labels::IdarbOptions;
 use crate::prior::source::{make_prior, PriorContext, PriorSource};
 use crate::fit::parameters::Parameters;
 use crate::fit::training_view::TrainingView;
+use crate::fit::view_screening::screen_views;
 use crate::geometry::atlas::{self, Atlas, AtlasSource};
 use crate::geometry::bvh::Bvh;
 pub use crate::jobs::geometry::GeometrySource;
@@ -173,6 +174,7 @@ pub fn prepare(scene: &str, data: Option<&PathBuf>, geometry: GeometrySource, pa
     let t = Instant::now();
     let views: Vec<TrainingView> =
         dataset.train.iter().enumerate().map(|(i, v)| TrainingView::new(v, i, &atlas.mesh, &bvh, downscale)).collect::<Result<_>>()?;
+    let views = screen_views(views, geometry_report.used == GeometrySource::GroundTruth, &spec.name)?;
     if views.iter().all(|v| v.is_empty()) {
         bail!("no training view of scene {:?} sees the mesh: check the cameras and the geometry", spec.name);
     }
@@ -321,8 +323,10 @@ pub fn views_with_prior(prepared: &Prepared, source: &PriorSource, ctx: &PriorCo
     if *source == PriorSource::None {
         return Ok((views, prior.describe()));
     }
+    // Positions in `views` (views with an empty mask are not there) and the same views' dataset indices.
     let which = labelled_views(views.len(), labelled);
-    let labels = prior.labels(&prepared.dataset, &which).with_context(|| format!("getting labels from --prior {}", source.tag()))?;
+    let dataset_indices: Vec<usize> = which.iter().map(|&k| views[k].index).collect();
+    let labels = prior.labels(&prepared.dataset, &dataset_indices).with_context(|| format!("getting labels from --prior {}", source.tag()))?;
     let mut count = 0;
     for (&i, l) in which.iter().zip(labels) {
         if let Some(l) = l {

@@ -19,8 +19,10 @@ use glam::{Mat4, Vec3};
 use rayon::prelude::*;
 use serde::Deserialize;
 
+use super::camera::rigid_problem;
 use super::Camera;
 use crate::image::io::{read_exr, read_exr_channel, read_png};
+use crate::image::safe_decode::{check_dimensions, guard};
 use crate::image::Image;
 
 /// Which of the three lists of views.
@@ -161,6 +163,10 @@ fn load_split(root: &Path, file: &Path) -> Result<Vec<View>> {
     let text = std::fs::read_to_string(file).with_context(|| format!("cannot read {}", file.display()))?;
     let parsed: TransformsFile = serde_json::from_str(&text)
         .with_context(|| format!("cannot parse {} as NeRF transforms JSON", file.display()))?;
+    let fov = parsed.camera_angle_x;
+    if !(fov.is_finite() && fov > 0.0 && fov < std::f32::consts::PI) {
+        bail!("{}: camera_angle_x {fov} is not a field of view in (0, π) radians", file.display());
+    }
     parsed
         .frames
         .par_iter()
@@ -174,16 +180,20 @@ fn load_split(root: &Path, file: &Path) -> Result<Vec<View>> {
 
 /// Read a PNG's size from its header only.
 fn png_size(path: &Path) -> Result<(usize, usize)> {
-    let (w, h) = image::image_dimensions(path)
-        .with_context(|| format!("cannot read the size of image {}", path.display()))?;
+    let (w, h) = guard(path, "PNG image", || {
+        image::image_dimensions(path).with_context(|| format!("cannot read the size of image {}", path.display()))
+    })?;
+    check_dimensions(path, w as u64, h as u64)?;
     Ok((w as usize, h as usize))
 }
 
 fn exr_size(path: &Path) -> Result<(usize, usize)> {
-    let meta = exr::meta::MetaData::read_from_file(path, false)
-        .with_context(|| format!("cannot read the header of EXR image {}", path.display()))?;
+    let meta = guard(path, "EXR image", || {
+        exr::meta::MetaData::read_from_file(path, false).with_context(|| format!("cannot read the header of EXR image {}", path.display()))
+    })?;
     let header = meta.headers.first().ok_or_else(|| anyhow!("{} has no image layer", path.display()))?;
     let size = header.shared_attributes.display_window.size;
+    check_dimensions(path, size.width() as u64, size.height() as u64)?;
     Ok((size.width(), size.height()))
 }
 
@@ -265,7 +275,11 @@ impl View {
             Layout::NerfSynthetic => rel.trim_end_matches(".png").replace('/', "_"),
         };
         let (width, height) = png_size(&image_path)?;
-        let camera = Camera { c2w: matrix_from_rows(frame.transform_matrix), fov_x, width, height };
+        let c2w = matrix_from_rows(frame.transform_matrix);
+        if let Some(problem) = rigid_problem(&c2w) {
+            bail!("transform_matrix is not a rigid camera pose: {problem}");
+        }
+        let camera = Camera { c2w, fov_x, width, height };
         let metadata_path = dir.join("metadata.json");
         let metadata = if layout == Layout::NeRFactor && metadata_path.is_file() {
             Some(parse_metadata(&metadata_path)?)

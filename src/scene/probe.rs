@@ -28,8 +28,10 @@ impl Probe {
         if image.width == 0 || image.height == 0 {
             bail!("light probe {} is empty", path.display());
         }
-        if let Some(bad) = image.data.iter().find(|v| !v.is_finite() || **v < 0.0) {
-            bail!("light probe {} holds a negative or non-finite value ({bad})", path.display());
+        image.require_finite(&format!("light probe {}", path.display()))?;
+        if let Some(k) = image.data.iter().position(|v| *v < 0.0) {
+            let (x, y) = ((k / 3) % image.width, k / 3 / image.width);
+            bail!("light probe {} holds a negative value ({}) at pixel ({x}, {y})", path.display(), image.data[k]);
         }
         let name = path.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default();
         Ok(Probe { name, image, strength })
@@ -70,6 +72,20 @@ mod tests {
         let path = dir.join("bad.exr");
         write_exr(&path, &Image::filled(2, 1, &[1.0, -1.0, 0.0])).expect("test setup");
         let msg = format!("{:#}", Probe::load(&path, 1.0).unwrap_err());
-        assert!(msg.contains("bad.exr") && msg.contains("negative"), "{msg}");
+        assert!(msg.contains("bad.exr") && msg.contains("negative") && msg.contains("pixel (0, 0)"), "{msg}");
+    }
+
+    #[test]
+    fn nan_or_inf_radiance_is_refused_naming_the_file_and_pixel() {
+        let dir = std::env::temp_dir().join(format!("reconstruct-probe-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).expect("test setup");
+        for (name, bad) in [("nan.exr", f32::NAN), ("inf.exr", f32::INFINITY)] {
+            let path = dir.join(name);
+            let mut img = Image::filled(4, 2, &[1.0, 1.0, 1.0]);
+            *img.pixel_mut(3, 1).get_mut(2).expect("3 channels") = bad;
+            write_exr(&path, &img).expect("test setup");
+            let msg = format!("{:#}", Probe::load(&path, 1.0).unwrap_err());
+            assert!(msg.contains(name) && msg.contains("pixel (3, 1) channel 2"), "{msg}");
+        }
     }
 }

@@ -7,6 +7,7 @@ use exr::prelude as exrs;
 use exr::prelude::{AnyChannel, AnyChannels, FlatSamples, ReadChannels, ReadLayers, WritableImage};
 
 use super::require_file;
+use crate::image::safe_decode::{check_dimensions, guard};
 use crate::image::Image;
 
 type FlatLayer = exrs::Layer<AnyChannels<FlatSamples>>;
@@ -88,16 +89,32 @@ pub fn write_exr_channels(path: &Path, img: &Image, names: &[&str]) -> Result<()
 /// The first layer at full resolution, and the display window (position, size).
 fn read_first_layer(path: &Path) -> Result<(FlatLayer, Window)> {
     require_file(path, "EXR image")?;
-    let image = exrs::read()
-        .no_deep_data()
-        .largest_resolution_level()
-        .all_channels()
-        .first_valid_layer()
-        .all_attributes()
-        .from_file(path)
-        .with_context(|| format!("cannot read {} as an OpenEXR file (corrupt or unsupported)", path.display()))?;
-    let display = image.attributes.display_window;
-    Ok((image.layer_data, (display.position, display.size)))
+    guard(path, "EXR image", || {
+        check_exr_header(path)?;
+        let image = exrs::read()
+            .no_deep_data()
+            .largest_resolution_level()
+            .all_channels()
+            .first_valid_layer()
+            .all_attributes()
+            .from_file(path)
+            .with_context(|| format!("cannot read {} as an OpenEXR file (corrupt or unsupported)", path.display()))?;
+        let display = image.attributes.display_window;
+        Ok((image.layer_data, (display.position, display.size)))
+    })
+}
+
+/// The sizes every header of an EXR file claims (data and display windows), checked against the
+/// limits before the pixels are read.
+fn check_exr_header(path: &Path) -> Result<()> {
+    let meta = exr::meta::MetaData::read_from_file(path, false)
+        .with_context(|| format!("cannot read the header of {} as an OpenEXR file (corrupt or unsupported)", path.display()))?;
+    for header in &meta.headers {
+        for size in [header.layer_size, header.shared_attributes.display_window.size] {
+            check_dimensions(path, size.width() as u64, size.height() as u64)?;
+        }
+    }
+    Ok(())
 }
 
 fn channel_names(layer: &FlatLayer) -> Vec<String> {

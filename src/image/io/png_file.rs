@@ -6,21 +6,21 @@ use anyhow::{bail, Context, Result};
 use image::{DynamicImage, ImageBuffer, ImageFormat};
 
 use super::require_file;
+use crate::image::safe_decode::decode_with_image_crate;
 use crate::image::Image;
 
 /// Read a PNG; values are the stored codes divided by 255 (or 65535), no transfer curve.
 pub fn read_png(path: &Path) -> Result<Image> {
     require_file(path, "PNG image")?;
-    let reader = image::ImageReader::open(path)
+    let format = image::ImageReader::open(path)
         .with_context(|| format!("cannot open PNG image {}", path.display()))?
         .with_guessed_format()
-        .with_context(|| format!("cannot read PNG image {}", path.display()))?;
-    if reader.format() != Some(ImageFormat::Png) {
-        bail!("{} is not a PNG file (its content is {:?})", path.display(), reader.format());
+        .with_context(|| format!("cannot read PNG image {}", path.display()))?
+        .format();
+    if format != Some(ImageFormat::Png) {
+        bail!("{} is not a PNG file (its content is {:?})", path.display(), format);
     }
-    let decoded = reader
-        .decode()
-        .with_context(|| format!("cannot decode PNG image {} (corrupt or unsupported)", path.display()))?;
+    let decoded = decode_with_image_crate(path, "PNG image")?;
     let (w, h) = (decoded.width() as usize, decoded.height() as usize);
     let (channels, data): (usize, Vec<f32>) = match decoded {
         DynamicImage::ImageLuma8(b) => (1, scale8(b.as_raw())),

@@ -33,7 +33,7 @@ fn save_png16(img: &Image, path: &Path) -> Result<()> {
 }
 
 fn load_png(path: &Path, channels: usize) -> Result<Image> {
-    let img = image::open(path).with_context(|| format!("reading cached label {}", path.display()))?;
+    let img = crate::image::safe_decode::decode_with_image_crate(path, "cached label")?;
     let (w, h) = (img.width() as usize, img.height() as usize);
     let data: Vec<f32> = match channels {
         1 => img.to_luma16().into_raw().into_iter().map(|v| v as f32 / 65535.0).collect(),
