@@ -626,7 +626,7 @@ pub fn render_sh(mesh: &Mesh, vertex_kd: &[Vec3], light_sh: &[f32], camera: &Cam
         }
     }
     // Premultiplied colour averages correctly; divide by the averaged coverage afterwards.
-    Ok(crate::render::view::unpremultiply(img.downsample_box(s)))
+    Ok(img.downsample_box(s).unpremultiplied())
 }
 
 #[cfg(test)]

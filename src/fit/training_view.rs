@@ -56,13 +56,7 @@ impl TrainingView {
         if s == 1 {
             return Self::from_image(&view.name, &view.camera, index, &rgba, mesh, bvh);
         }
-        // Average premultiplied colour, then divide by the averaged alpha (straight alpha again).
-        let mut pre = rgba.clone();
-        for p in pre.data.chunks_exact_mut(4) {
-            let a = p[3];
-            p[..3].iter_mut().for_each(|c| *c *= a);
-        }
-        let small = crate::render::view::unpremultiply(pre.downsample_box(s));
+        let small = rgba.downsample_straight_alpha(s);
         let camera = view.camera.resized(view.camera.width / s, view.camera.height / s);
         Self::from_image(&view.name, &camera, index, &small, mesh, bvh)
     }

@@ -7,9 +7,7 @@ use anyhow::{bail, Result};
 
 use super::training_view::TrainingView;
 
-/// A pixel belongs to the mask when its alpha is at least this: half coverage, where the outline of an
-/// anti-aliased mask passes (the visual hull's default threshold too).
-pub const MASK_THRESHOLD: f32 = 0.5;
+pub use crate::scene::dataset::MASK_THRESHOLD;
 
 /// Largest share of silhouette pixels (mesh ∪ mask) on which the two may disagree before a warning.
 /// Disagreement is counted with a one-pixel tolerance (a pixel counts only when no pixel of the other

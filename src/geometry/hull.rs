@@ -100,7 +100,7 @@ impl Default for HullOptions {
     fn default() -> Self {
         HullOptions {
             // Half coverage: the outline of an anti-aliased mask passes through pixels half covered.
-            threshold: 0.5,
+            threshold: crate::scene::dataset::MASK_THRESHOLD,
             // 128 along the longest side is about 2 million voxels in a cube: each costs one projection
             // per view until a view carves it, so a hundred views take seconds on two cores. At 256²
             // views an object filling most of the frame spans ~200 px, so a voxel is about 1.6 px,

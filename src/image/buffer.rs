@@ -125,6 +125,33 @@ impl Image {
         }
     }
 
+    /// RGBA with colour divided by alpha where alpha > 0: premultiplied back to straight alpha,
+    /// as the datasets store it.
+    pub fn unpremultiplied(mut self) -> Image {
+        debug_assert_eq!(self.channels, 4);
+        for p in self.data.chunks_exact_mut(4) {
+            let alpha = p[3];
+            if alpha > 0.0 {
+                for c in &mut p[..3] {
+                    *c /= alpha;
+                }
+            }
+        }
+        self
+    }
+
+    /// Straight-alpha RGBA reduced `factor`× by the box filter done right for alpha: the
+    /// premultiplied colour is averaged, then divided by the averaged alpha (averaging straight
+    /// colour would let the background's arbitrary colour bleed into outline pixels).
+    pub fn downsample_straight_alpha(&self, factor: usize) -> Image {
+        let mut pre = self.clone();
+        for p in pre.data.chunks_exact_mut(4) {
+            let a = p[3];
+            p[..3].iter_mut().for_each(|c| *c *= a);
+        }
+        pre.downsample_box(factor).unpremultiplied()
+    }
+
     /// Average `factor`×`factor` blocks (box filter), e.g. to resolve a supersampled render.
     pub fn downsample_box(&self, factor: usize) -> Image {
         assert!(factor >= 1 && self.width % factor == 0 && self.height % factor == 0);

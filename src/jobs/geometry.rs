@@ -10,7 +10,7 @@
 
 use std::time::Instant;
 
-use anyhow::{Context, Result};
+use anyhow::{bail, Context, Result};
 use glam::Vec3;
 use serde::Serialize;
 
@@ -19,7 +19,7 @@ use crate::geometry::hull::{visual_hull, HullOptions, MaskView};
 use crate::eval::geometry_metrics::{geometry_metrics, load_judge_views, view_metrics, GeometryMetricOptions, GeometryMetrics, ViewMetrics};
 use crate::geometry::bvh::Bvh;
 use crate::geometry::Mesh;
-use crate::scene::dataset::Dataset;
+use crate::scene::dataset::{Dataset, MASK_THRESHOLD};
 use crate::scene::{ground_truth_mesh, ground_truth_source, SceneSpec};
 
 /// Where the geometry comes from.
@@ -166,28 +166,34 @@ pub fn obtain_geometry(spec: &SceneSpec, dataset: &Dataset, source: GeometrySour
 }
 
 /// The training views brought to at most [`GEOMETRY_MAX_SIDE`] pixels (box filter over
-/// premultiplied colour, like the material pass's downscaling).
+/// premultiplied colour, like the material pass's downscaling). A view whose mask is empty does not
+/// show the object, and its silhouette loss would push the mesh out of the frame: it is left out with
+/// a warning (the visual hull skips it too).
 fn geometry_views(dataset: &Dataset) -> Result<Vec<GeometryView>> {
-    dataset
-        .train
-        .iter()
-        .map(|v| {
-            let rgba = v.load_rgba().with_context(|| format!("geometry pass: training view {}", v.name))?;
-            let side = v.camera.width.max(v.camera.height);
-            let s = side.div_ceil(GEOMETRY_MAX_SIDE).max(1);
-            let s = if v.camera.width % s == 0 && v.camera.height % s == 0 { s } else { 1 };
-            if s == 1 {
-                return Ok(GeometryView { name: v.name.clone(), camera: v.camera.clone(), target: rgba });
-            }
-            let mut pre = rgba;
-            for p in pre.data.chunks_exact_mut(4) {
-                let a = p[3];
-                p[..3].iter_mut().for_each(|c| *c *= a);
-            }
-            let target = crate::render::view::unpremultiply(pre.downsample_box(s));
-            Ok(GeometryView { name: v.name.clone(), camera: v.camera.resized(v.camera.width / s, v.camera.height / s), target })
-        })
-        .collect()
+    let mut views = Vec::with_capacity(dataset.train.len());
+    let mut empty = Vec::new();
+    for v in &dataset.train {
+        let rgba = v.load_rgba().with_context(|| format!("geometry pass: training view {}", v.name))?;
+        if !rgba.data.chunks_exact(4).any(|p| p[3] >= MASK_THRESHOLD) {
+            empty.push(v.name.clone());
+            continue;
+        }
+        let side = v.camera.width.max(v.camera.height);
+        let s = side.div_ceil(GEOMETRY_MAX_SIDE).max(1);
+        let s = if v.camera.width % s == 0 && v.camera.height % s == 0 { s } else { 1 };
+        views.push(if s == 1 {
+            GeometryView { name: v.name.clone(), camera: v.camera.clone(), target: rgba }
+        } else {
+            GeometryView { name: v.name.clone(), camera: v.camera.resized(v.camera.width / s, v.camera.height / s), target: rgba.downsample_straight_alpha(s) }
+        });
+    }
+    if !empty.is_empty() {
+        eprintln!("warning: geometry pass: skipping {} of {} training views whose mask is empty: {}", empty.len(), dataset.train.len(), empty.join(", "));
+    }
+    if views.is_empty() {
+        bail!("geometry pass: every training view's mask is empty ({}); nothing shows the object", empty.join(", "));
+    }
+    Ok(views)
 }
 
 fn reconstruct(dataset: &Dataset, pass: &GeometryPassConfig, progress: bool, why: String) -> Result<GeometryOutcome> {

@@ -134,18 +134,6 @@ pub fn render_view_with(
             premultiplied.data[4 * i..4 * i + 4].copy_from_slice(&[c.x, c.y, c.z, 1.0]);
         }
     }
-    unpremultiply(premultiplied.downsample_box(s))
+    premultiplied.downsample_box(s).unpremultiplied()
 }
 
-/// Divide colour by alpha where alpha > 0 (straight alpha, as the dataset stores it).
-pub fn unpremultiply(mut img: Image) -> Image {
-    for p in img.data.chunks_exact_mut(4) {
-        let alpha = p[3];
-        if alpha > 0.0 {
-            for c in &mut p[..3] {
-                *c /= alpha;
-            }
-        }
-    }
-    img
-}

@@ -25,6 +25,11 @@ use crate::image::io::{read_exr, read_exr_channel, read_png};
 use crate::image::safe_decode::{check_dimensions, guard};
 use crate::image::Image;
 
+/// A pixel belongs to the object's mask when its alpha is at least this: half coverage, where the
+/// outline of an anti-aliased mask passes. The visual hull, the geometry pass and the view
+/// screening all cut the masks here.
+pub const MASK_THRESHOLD: f32 = 0.5;
+
 /// Which of the three lists of views.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Split {

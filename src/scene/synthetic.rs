@@ -14,7 +14,7 @@ use crate::geometry::Mesh;
 use crate::image::{io, Image};
 use crate::light::CubeMap;
 use crate::render::gbuffer::GBuffer;
-use crate::render::view::{render_view, unpremultiply, PreparedLight, RenderSettings};
+use crate::render::view::{render_view, PreparedLight, RenderSettings};
 use crate::scene::{Camera, Probe};
 
 pub struct SyntheticScene {
@@ -116,7 +116,7 @@ fn write_ground_truth_maps(mesh: &Mesh, bvh: &Bvh, cam: &Camera, supersample: us
             depth.data[4 * i..4 * i + 4].copy_from_slice(&[s.depth, s.depth, s.depth, 1.0]);
         }
     }
-    let resolve = |img: Image| unpremultiply(img.downsample_box(s));
+    let resolve = |img: Image| img.downsample_box(s).unpremultiplied();
     io::write_png(&dir.join("albedo.png"), &resolve(albedo))?;
     io::write_png(&dir.join("normal.png"), &resolve(normal))?;
     io::write_png(&dir.join("roughness.png"), &resolve(rough).channel(0))?;
