@@ -14,4 +14,5 @@ pub mod labels;
 pub mod objective;
 pub mod parameters;
 pub mod pixel_scatter;
+pub mod settings_diff;
 pub mod training_view;
