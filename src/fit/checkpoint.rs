@@ -99,3 +99,40 @@ pub fn load(dir: &Path) -> Result<Option<Checkpoint>> {
     let adam = AdamState { step: progress.adam_step, slots };
     Ok(Some(Checkpoint { progress, kd, ks, light, adam }))
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::fit::objective::LossTerms;
+
+    fn record(iteration: usize) -> IterationRecord {
+        IterationRecord { iteration, terms: LossTerms::default(), lr_factor: 1.0, seconds: 0.0 }
+    }
+
+    fn progress(iteration: usize) -> Progress {
+        Progress { iteration, state_file: String::new(), identity: serde_json::json!({"seed": 0}), history: (0..iteration).map(record).collect(), adam_step: iteration, adam_slots: Vec::new() }
+    }
+
+    #[test]
+    fn a_kill_at_any_step_of_a_save_leaves_one_whole_checkpoint() -> Result<()> {
+        let dir = std::env::temp_dir().join(format!("reconstruct-checkpoint-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        let t = |v: f32| Tensor::full(v, (2, 3), &Device::Cpu);
+        let adam = AdamState { step: 1, slots: Vec::new() };
+        save(&dir, &t(1.0)?, &t(1.0)?, &t(1.0)?, &adam, &mut progress(1))?;
+        // Killed while writing iteration 2's state, then after renaming it but before progress.json:
+        // the checkpoint of iteration 1 is what loads, with its own tensors.
+        std::fs::write(dir.join(format!(".{}", state_file_name(2).replace(".safetensors", ".partial.safetensors"))), b"half")?;
+        candle_core::safetensors::save(&HashMap::from([("kd".to_string(), t(2.0)?)]), dir.join(state_file_name(2)))?;
+        std::fs::write(dir.join(".progress.partial.json"), b"{\"iteration\": 2")?;
+        let cp = load(&dir)?.expect("a checkpoint");
+        assert_eq!((cp.progress.iteration, cp.kd.to_vec2::<f32>()?[0][0]), (1, 1.0));
+        // A completed save commits iteration 2 and drops the older state files.
+        save(&dir, &t(2.0)?, &t(2.0)?, &t(2.0)?, &adam, &mut progress(2))?;
+        let cp = load(&dir)?.expect("a checkpoint");
+        assert_eq!((cp.progress.iteration, cp.ks.to_vec2::<f32>()?[1][2]), (2, 2.0));
+        assert!(!dir.join(state_file_name(1)).exists());
+        std::fs::remove_dir_all(&dir)?;
+        Ok(())
+    }
+}
