@@ -4,7 +4,9 @@
 //!
 //! Run folder: `model/` (OBJ + MTL, glTF, kd/ks PNG), `light/` (lat-long EXR, cube faces),
 //! `renders/` (validation views under the learned light), `checkpoint/` (resume state),
-//! `report.json`, `report.md`, `plots/`.
+//! `geometry.json` (reconstructed geometry, reused by a rerun), `report.md`, `plots/`, and
+//! `report.json`, written last. What makes two runs the same run, and how a killed run resumes:
+//! docs/runs.md.
 
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
