@@ -5,6 +5,8 @@ use std::path::PathBuf;
 use anyhow::Result;
 use clap::{Parser, Subcommand, ValueEnum};
 use reconstruct::fit::config::FitConfig;
+use reconstruct::jobs::overrides::SettingOverrides;
+use reconstruct::jobs::run_folder::default_run_folder;
 use reconstruct::fit::geometry_pass::GeometryPassConfig;
 use reconstruct::jobs::ablation;
 use reconstruct::prior::source::PriorSource;
@@ -86,59 +88,24 @@ struct ReconstructArgs {
     /// Where the mesh comes from.
     #[arg(long, value_enum, default_value = "auto")]
     geometry: Geometry,
-    /// Iterations of the geometry pass (when the geometry is reconstructed).
-    #[arg(long)]
-    geometry_iterations: Option<usize>,
     /// Shading during optimisation.
     #[arg(long, value_enum, default_value = "auto")]
     mode: TrainMode,
-    /// Monte Carlo samples per pixel and strategy (training).
-    #[arg(long)]
-    spp: Option<u32>,
-    /// Cross-bilateral denoiser on the Monte Carlo buffers.
-    #[arg(long)]
-    denoise: bool,
-    #[arg(long)]
-    iterations: Option<usize>,
-    /// Views per iteration.
-    #[arg(long)]
-    batch: Option<usize>,
-    #[arg(long)]
-    texture_res: Option<usize>,
-    #[arg(long)]
-    light_res: Option<usize>,
-    #[arg(long)]
-    seed: Option<u64>,
-    /// Adam learning rate of the kd/ks textures.
-    #[arg(long)]
-    lr_material: Option<f64>,
-    /// Adam learning rate of the light.
-    #[arg(long)]
-    lr_light: Option<f64>,
-    /// Weight of the light white-balance regulariser (NVDiffRec: 0.005).
-    #[arg(long)]
-    light_balance: Option<f64>,
+    #[command(flatten)]
+    settings: SettingOverrides,
     /// Monte Carlo samples per pixel of the evaluation renders.
     #[arg(long, default_value_t = 16)]
     eval_spp: u32,
-    /// Run folder (default: runs/<scene>-<prior>-<mode>). A rerun resumes from its checkpoint.
+    /// Relight at most this many test views (default: all).
+    #[arg(long)]
+    eval_test_views: Option<usize>,
+    /// Run folder (default: runs/<scene>-<geometry>-<prior>-<mode>-<digest of the settings>, docs/runs.md).
+    /// A rerun with the same settings resumes from its checkpoint.
     #[arg(long)]
     out: Option<PathBuf>,
     /// Training views the prior labels (evenly spread; labelling with IDArb is expensive).
     #[arg(long, default_value_t = 100)]
     labelled_views: usize,
-    /// Weight of every prior component (albedo, roughness, metallic).
-    #[arg(long)]
-    prior_weight: Option<f64>,
-    /// Weight of the albedo component alone (overrides --prior-weight).
-    #[arg(long)]
-    prior_albedo: Option<f64>,
-    /// Weight of the roughness component alone.
-    #[arg(long)]
-    prior_roughness: Option<f64>,
-    /// Weight of the metallic component alone.
-    #[arg(long)]
-    prior_metallic: Option<f64>,
     /// IDArb weights folder for --prior idarb (else the IDARB_WEIGHTS variable).
     #[arg(long)]
     idarb_weights: Option<PathBuf>,
@@ -302,31 +269,24 @@ fn sweep(action: SweepAction) -> Result<()> {
 }
 
 fn reconstruct(a: ReconstructArgs) -> Result<()> {
-    let fixed_mode = a.mode.fixed();
-    let mut fit = FitConfig { mode: fixed_mode.unwrap_or(ShadingMode::SplitSum), denoise: a.denoise, ..FitConfig::default() };
-    if let Some(v) = a.spp { fit.spp = v; }
-    if let Some(v) = a.iterations { fit.iterations = v; }
-    if let Some(v) = a.batch { fit.batch = v; }
-    if let Some(v) = a.texture_res { fit.texture_res = v; }
-    if let Some(v) = a.light_res { fit.light_res = v; }
-    if let Some(v) = a.seed { fit.seed = v; }
-    if let Some(v) = a.lr_material { fit.lr_material = v; }
-    if let Some(v) = a.lr_light { fit.lr_light = v; }
-    if let Some(v) = a.light_balance { fit.regularizers.light_white_balance = v; }
-    if let Some(v) = a.prior_weight { fit.prior.albedo = v; fit.prior.roughness = v; fit.prior.metallic = v; }
-    if let Some(v) = a.prior_albedo { fit.prior.albedo = v; }
-    if let Some(v) = a.prior_roughness { fit.prior.roughness = v; }
-    if let Some(v) = a.prior_metallic { fit.prior.metallic = v; }
     let prior: PriorSource = a.prior.parse()?;
-    let mode_tag = match fixed_mode { None => "auto", Some(ShadingMode::SplitSum) => "splitsum", Some(ShadingMode::MonteCarlo) => "mc" };
-    let geometry = a.geometry.source();
-    let out = a.out.unwrap_or_else(|| PathBuf::from(format!("runs/{}-{}-{}-{mode_tag}", a.scene, geometry.tag(), a.prior.replace([':', '/'], "_"))));
-    let mut geometry_pass = GeometryPassConfig::default();
-    if let Some(v) = a.geometry_iterations { geometry_pass.iterations = v; }
-    let opts = ReconstructOptions { scene: a.scene, data: a.data, geometry, geometry_pass, fit, eval_spp: a.eval_spp, out: out.clone(), progress: !a.quiet, labelled_views: a.labelled_views, idarb_weights: a.idarb_weights, effects_override: None, eval_test_views: None, auto_mode: fixed_mode.is_none() };
+    let fixed_mode = a.mode.fixed();
+    let mut opts = ReconstructOptions::new(&a.scene, a.settings.fit_config(fixed_mode), a.eval_spp, PathBuf::new());
+    opts.data = a.data;
+    opts.geometry = a.geometry.source();
+    opts.geometry_pass = a.settings.geometry_pass();
+    opts.progress = !a.quiet;
+    opts.labelled_views = a.labelled_views;
+    opts.idarb_weights = a.idarb_weights;
+    opts.auto_mode = fixed_mode.is_none();
+    opts.eval_test_views = a.eval_test_views;
+    opts.out = match a.out {
+        Some(out) => out,
+        None => default_run_folder(&opts, &prior)?,
+    };
     let report = run_job(&opts, &prior)?;
     println!("{}", report.summary());
-    println!("wrote {}", out.display());
+    println!("wrote {}", opts.out.display());
     Ok(())
 }
 
@@ -341,7 +301,7 @@ fn main() -> Result<()> {
             let mut geometry_pass = GeometryPassConfig::default();
             if let Some(v) = geometry_iterations { geometry_pass.iterations = v; }
             let base = ReconstructOptions { auto_mode: fixed_mode.is_none(), geometry: geometry.source(), geometry_pass, ..ReconstructOptions::new(&scene, fit, eval_spp, out.clone()) };
-            let sources = vec![PriorSource::None, PriorSource::IdarbSim(1.0), PriorSource::Oracle];
+            let sources = ablation::default_sources();
             let opts = ablation::AblationOptions { base, sources, sweep };
             if let Some(path) = plan.plan {
                 println!("{}", sweep_plan::write_plan(&path, &sweep_plan::ablation(&opts), plan.append)?);

@@ -248,8 +248,13 @@ fn resumed_run_matches_the_uninterrupted_one() -> Result<()> {
     // Other settings must not silently reuse the checkpoint.
     let other = FitConfig { lr_material: 0.5, ..cfg.clone() };
     let mut wrong = Fit::new(other.clone(), Parameters::initial(&other)?, s.views.clone(), context(&s, &other))?;
-    let err = wrong.resume(&dir).expect_err("settings differ");
-    assert!(err.to_string().contains("other settings"), "{err}");
+    let err = wrong.resume(&dir).expect_err("settings differ").to_string();
+    assert!(err.contains(&format!("fit.lr_material: {} → 0.5", cfg.lr_material)) && err.contains(&dir.display().to_string()), "{err}");
+    // A checkpoint past the run's length is refused, not reported under the shorter length.
+    let short = FitConfig { iterations: 2, ..cfg.clone() };
+    let mut early = Fit::new(short.clone(), Parameters::initial(&short)?, s.views.clone(), context(&s, &short))?;
+    let err = early.resume(&dir).expect_err("checkpoint past the end").to_string();
+    assert!(err.contains("at iteration 8, past this run's 2 iterations"), "{err}");
     std::fs::remove_dir_all(&dir)?;
     Ok(())
 }

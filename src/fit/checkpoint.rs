@@ -1,28 +1,35 @@
 //! Checkpoints: the parameters, Adam's moments and the history of a run, written every few
-//! iterations so an interrupted run resumes where it stopped (same settings required).
-//! Files: `state.safetensors` (tensors) and `progress.json` (iteration, settings fingerprint,
-//! history), each written to a temporary name and renamed, so a crash never leaves half a checkpoint.
+//! iterations so an interrupted run resumes where it stopped (same run identity required).
+//!
+//! Files in the checkpoint folder: `state-NNNNNN.safetensors` (tensors after iteration NNNNNN) and
+//! `progress.json` (iteration, the state file's name, the run identity, history). A save writes
+//! the new state file (temporary name, then renamed), then `progress.json` the same way, and only
+//! then deletes older state files; `progress.json` is the commit point. A kill at any moment leaves
+//! a `progress.json` whose state file exists and belongs to it: the previous checkpoint or the new.
 
 use std::collections::HashMap;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 use anyhow::{bail, Context, Result};
 use candle_core::{Device, Tensor};
 use serde::{Deserialize, Serialize};
 
+use crate::atomic_write;
 use crate::optim::adam::AdamState;
 
 use super::history::IterationRecord;
 
-const STATE_FILE: &str = "state.safetensors";
 const PROGRESS_FILE: &str = "progress.json";
 
 #[derive(Serialize, Deserialize)]
 pub struct Progress {
     /// Iterations completed.
     pub iteration: usize,
-    /// `FitConfig::fingerprint` of the run that wrote it.
-    pub fingerprint: String,
+    /// The tensors of this iteration (a file in the same folder).
+    pub state_file: String,
+    /// What the run that wrote it must share with a run that resumes it (the job's run identity,
+    /// or the fit's own settings; see `Fit::set_identity`).
+    pub identity: serde_json::Value,
     pub history: Vec<IterationRecord>,
     /// Adam: global step and per-tensor (key, steps).
     pub adam_step: usize,
@@ -37,13 +44,13 @@ pub struct Checkpoint {
     pub adam: AdamState,
 }
 
-fn write_atomic(path: &Path, write: impl FnOnce(&Path) -> Result<()>) -> Result<()> {
-    let tmp = path.with_extension("tmp");
-    write(&tmp)?;
-    std::fs::rename(&tmp, path).with_context(|| format!("cannot move {} to {}", tmp.display(), path.display()))
+/// The state file of iteration `iteration`.
+pub fn state_file_name(iteration: usize) -> String {
+    format!("state-{iteration:06}.safetensors")
 }
 
-pub fn save(dir: &Path, kd: &Tensor, ks: &Tensor, light: &Tensor, adam: &AdamState, progress: &Progress) -> Result<()> {
+/// Saves a checkpoint; `progress.state_file` is set here.
+pub fn save(dir: &Path, kd: &Tensor, ks: &Tensor, light: &Tensor, adam: &AdamState, progress: &mut Progress) -> Result<()> {
     std::fs::create_dir_all(dir).with_context(|| format!("cannot create checkpoint folder {}", dir.display()))?;
     let mut tensors: HashMap<String, Tensor> = HashMap::new();
     tensors.insert("kd".into(), kd.clone());
@@ -53,22 +60,32 @@ pub fn save(dir: &Path, kd: &Tensor, ks: &Tensor, light: &Tensor, adam: &AdamSta
         tensors.insert(format!("adam/{key}/m"), m.clone());
         tensors.insert(format!("adam/{key}/v"), v.clone());
     }
-    write_atomic(&dir.join(STATE_FILE), |p| {
+    progress.state_file = state_file_name(progress.iteration);
+    atomic_write::replace_file(&dir.join(&progress.state_file), |p| {
         candle_core::safetensors::save(&tensors, p).with_context(|| format!("cannot write checkpoint {}", p.display()))
     })?;
-    write_atomic(&dir.join(PROGRESS_FILE), |p| {
-        std::fs::write(p, serde_json::to_string(progress)?).with_context(|| format!("cannot write {}", p.display()))
-    })
+    atomic_write::write(&dir.join(PROGRESS_FILE), serde_json::to_string(progress)?)?;
+    // Older state files are no longer named by progress.json.
+    for entry in std::fs::read_dir(dir).with_context(|| format!("cannot list {}", dir.display()))?.flatten() {
+        let name = entry.file_name().to_string_lossy().into_owned();
+        if name.starts_with("state-") && name.ends_with(".safetensors") && name != progress.state_file {
+            std::fs::remove_file(entry.path()).with_context(|| format!("cannot remove the old checkpoint {}", entry.path().display()))?;
+        }
+    }
+    Ok(())
 }
 
 /// The checkpoint in `dir`, `None` when there is none.
 pub fn load(dir: &Path) -> Result<Option<Checkpoint>> {
-    let (state, progress_path): (PathBuf, PathBuf) = (dir.join(STATE_FILE), dir.join(PROGRESS_FILE));
-    if !state.is_file() || !progress_path.is_file() {
+    let progress_path = dir.join(PROGRESS_FILE);
+    if !progress_path.is_file() {
         return Ok(None);
     }
     let text = std::fs::read_to_string(&progress_path).with_context(|| format!("cannot read {}", progress_path.display()))?;
-    let progress: Progress = serde_json::from_str(&text).with_context(|| format!("{} is not a valid checkpoint progress file", progress_path.display()))?;
+    let progress: Progress = serde_json::from_str(&text).with_context(|| {
+        format!("{} is not a checkpoint progress file of this version of reconstruct; delete the folder {} to start afresh", progress_path.display(), dir.display())
+    })?;
+    let state = dir.join(&progress.state_file);
     let mut tensors = crate::image::safe_decode::guard(&state, "checkpoint", || {
         candle_core::safetensors::load(&state, &Device::Cpu).with_context(|| format!("cannot read checkpoint {}", state.display()))
     })?;
@@ -94,4 +111,41 @@ pub fn load(dir: &Path) -> Result<Option<Checkpoint>> {
     }
     let adam = AdamState { step: progress.adam_step, slots };
     Ok(Some(Checkpoint { progress, kd, ks, light, adam }))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::fit::objective::LossTerms;
+
+    fn record(iteration: usize) -> IterationRecord {
+        IterationRecord { iteration, terms: LossTerms::default(), lr_factor: 1.0, seconds: 0.0 }
+    }
+
+    fn progress(iteration: usize) -> Progress {
+        Progress { iteration, state_file: String::new(), identity: serde_json::json!({"seed": 0}), history: (0..iteration).map(record).collect(), adam_step: iteration, adam_slots: Vec::new() }
+    }
+
+    #[test]
+    fn a_kill_at_any_step_of_a_save_leaves_one_whole_checkpoint() -> Result<()> {
+        let dir = std::env::temp_dir().join(format!("reconstruct-checkpoint-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        let t = |v: f32| Tensor::full(v, (2, 3), &Device::Cpu);
+        let adam = AdamState { step: 1, slots: Vec::new() };
+        save(&dir, &t(1.0)?, &t(1.0)?, &t(1.0)?, &adam, &mut progress(1))?;
+        // Killed while writing iteration 2's state, then after renaming it but before progress.json:
+        // the checkpoint of iteration 1 is what loads, with its own tensors.
+        std::fs::write(dir.join(format!(".{}", state_file_name(2).replace(".safetensors", ".partial.safetensors"))), b"half")?;
+        candle_core::safetensors::save(&HashMap::from([("kd".to_string(), t(2.0)?)]), dir.join(state_file_name(2)))?;
+        std::fs::write(dir.join(".progress.partial.json"), b"{\"iteration\": 2")?;
+        let cp = load(&dir)?.expect("a checkpoint");
+        assert_eq!((cp.progress.iteration, cp.kd.to_vec2::<f32>()?[0][0]), (1, 1.0));
+        // A completed save commits iteration 2 and drops the older state files.
+        save(&dir, &t(2.0)?, &t(2.0)?, &t(2.0)?, &adam, &mut progress(2))?;
+        let cp = load(&dir)?.expect("a checkpoint");
+        assert_eq!((cp.progress.iteration, cp.ks.to_vec2::<f32>()?[1][2]), (2, 2.0));
+        assert!(!dir.join(state_file_name(1)).exists());
+        std::fs::remove_dir_all(&dir)?;
+        Ok(())
+    }
 }

@@ -68,7 +68,7 @@ pub struct FitConfig {
     pub seed: u64,
     /// Iterations between checkpoints (0 = none).
     pub checkpoint_every: usize,
-    /// The label source (set by the job; part of the fingerprint so a checkpoint made with
+    /// The label source (set by the job; part of the resume settings so a checkpoint made with
     /// another prior is never resumed).
     #[serde(default)]
     pub prior_source: String,
@@ -102,11 +102,16 @@ impl Default for FitConfig {
 }
 
 impl FitConfig {
-    /// Settings that change the result (everything but bookkeeping), for resuming checks.
-    pub fn fingerprint(&self) -> String {
+    /// The settings a run must share with a checkpoint to resume it: everything but the
+    /// bookkeeping (`checkpoint_every`) and the run's length (`iterations`, so a finished run can be
+    /// extended: nothing else in a step depends on the total), unless the prior anneals over the
+    /// run's length (then every step's prior weight depends on it).
+    pub fn resume_settings(&self) -> FitConfig {
         let mut c = self.clone();
-        c.iterations = 0;
+        if self.prior.anneal == 0.0 {
+            c.iterations = 0;
+        }
         c.checkpoint_every = 0;
-        serde_json::to_string(&c).unwrap_or_default()
+        c
     }
 }

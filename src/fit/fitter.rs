@@ -16,6 +16,7 @@ use super::checkpoint::{self, Progress};
 use super::config::FitConfig;
 use super::history::{trailing_mean, IterationRecord};
 use super::objective::objective;
+use super::settings_diff::differences;
 use super::parameters::Parameters;
 use super::training_view::TrainingView;
 
@@ -31,6 +32,9 @@ pub struct Fit {
     pub ctx: ShadingContext,
     pub history: Vec<IterationRecord>,
     adam: Adam,
+    /// What a checkpoint must match to be resumed: by default the fit's own settings
+    /// ([`Fit::own_identity`]); a job replaces it with its run identity ([`Fit::set_identity`]).
+    identity: serde_json::Value,
 }
 
 fn optimiser(config: &FitConfig, params: &Parameters) -> Result<Adam> {
@@ -54,7 +58,20 @@ impl Fit {
             bail!("batch size must be at least 1");
         }
         let adam = optimiser(&config, &params)?;
-        Ok(Fit { config, params, views, ctx, history: Vec::new(), adam })
+        let identity = Self::own_identity(&config, &ctx)?;
+        Ok(Fit { config, params, views, ctx, history: Vec::new(), adam, identity })
+    }
+
+    /// The fit's own resume identity: its settings without bookkeeping
+    /// ([`FitConfig::resume_settings`]) and the effects it shades with.
+    pub fn own_identity(config: &FitConfig, ctx: &ShadingContext) -> Result<serde_json::Value> {
+        Ok(serde_json::json!({ "fit": serde_json::to_value(config.resume_settings())?, "effects": serde_json::to_value(ctx.effects)? }))
+    }
+
+    /// Sets what a checkpoint must match to be resumed (a job's run identity, which must cover
+    /// this fit's settings), and what checkpoints record.
+    pub fn set_identity(&mut self, identity: serde_json::Value) {
+        self.identity = identity;
     }
 
     /// Iterations done.
@@ -111,13 +128,28 @@ impl Fit {
         Ok(record)
     }
 
-    /// Loads the checkpoint in `dir` if there is one made with the same settings; returns whether it did.
+    /// Loads the checkpoint in `dir` if there is one; returns whether it did. A checkpoint of
+    /// another run identity is refused with each differing setting named (old → new), and so is
+    /// one already past `config.iterations`.
     pub fn resume(&mut self, dir: &Path) -> Result<bool> {
         let Some(cp) = checkpoint::load(dir)? else { return Ok(false) };
-        if cp.progress.fingerprint != self.config.fingerprint() {
+        if cp.progress.identity != self.identity {
+            let lines: Vec<String> = differences(&cp.progress.identity, &self.identity).iter().map(|d| format!("  {d}")).collect();
             bail!(
-                "checkpoint in {} was made with other settings; delete the folder or rerun with the same settings",
+                "the checkpoint in {} belongs to another run; these settings differ (checkpoint → this run):\n{}\n\
+                 rerun with the checkpoint's settings, choose another run folder (--out), or delete {} to start afresh",
+                dir.display(),
+                lines.join("\n"),
                 dir.display()
+            );
+        }
+        if cp.progress.iteration > self.config.iterations {
+            bail!(
+                "the checkpoint in {} is at iteration {}, past this run's {} iterations; pass at least --iterations {} or choose another run folder (--out)",
+                dir.display(),
+                cp.progress.iteration,
+                self.config.iterations,
+                cp.progress.iteration
             );
         }
         set_var(&self.params.kd, &cp.kd).context("checkpoint kd")?;
@@ -130,14 +162,15 @@ impl Fit {
 
     pub fn save_checkpoint(&self, dir: &Path) -> Result<()> {
         let state = self.adam.state()?;
-        let progress = Progress {
+        let mut progress = Progress {
             iteration: self.iteration(),
-            fingerprint: self.config.fingerprint(),
+            state_file: String::new(),
+            identity: self.identity.clone(),
             history: self.history.clone(),
             adam_step: state.step,
             adam_slots: state.slots.iter().map(|(k, _, _, s)| (k.clone(), *s)).collect(),
         };
-        checkpoint::save(dir, self.params.kd.as_tensor(), self.params.ks.as_tensor(), self.params.light.as_tensor(), &state, &progress)
+        checkpoint::save(dir, self.params.kd.as_tensor(), self.params.ks.as_tensor(), self.params.light.as_tensor(), &state, &mut progress)
     }
 
     /// Runs until `config.iterations`, checkpointing into `checkpoint_dir` every

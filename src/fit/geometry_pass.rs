@@ -113,7 +113,7 @@ pub struct GeometryView {
 }
 
 /// Per-step record.
-#[derive(Clone, Debug, Serialize)]
+#[derive(Clone, Debug, Serialize, serde::Deserialize)]
 pub struct GeometryStep {
     pub iteration: usize,
     pub loss: f64,
@@ -124,7 +124,7 @@ pub struct GeometryStep {
 }
 
 /// Wall time of each part of a step, summed over the pass (the bench prints them per step).
-#[derive(Clone, Debug, Default, Serialize)]
+#[derive(Clone, Debug, Default, Serialize, serde::Deserialize)]
 pub struct GeometryTimings {
     pub bvh_rebuild: f64,
     pub gbuffer: f64,

@@ -14,5 +14,6 @@ pub mod labels;
 pub mod objective;
 pub mod parameters;
 pub mod pixel_scatter;
+pub mod settings_diff;
 pub mod training_view;
 pub mod view_screening;

@@ -14,7 +14,7 @@ use crate::fit::evaluate::Evaluation;
 use crate::prior::source::PriorSource;
 use crate::report::plot::{write_line_plot, LinePlot, Series};
 
-use super::reconstruct::{prepare, prior_context, run_prepared, views_with_prior, ReconstructOptions};
+use super::reconstruct::{prepare_run, prior_context, run_prepared, views_with_prior, ReconstructOptions};
 
 #[derive(Clone, Debug)]
 pub struct AblationOptions {
@@ -82,6 +82,12 @@ impl AblationReport {
     }
 }
 
+/// The sources of the `ablation` command's table: no prior, simulated IDArb labels at IDArb's
+/// published error, and the ground truth as labels (the bounds the prior can reach).
+pub fn default_sources() -> Vec<PriorSource> {
+    vec![PriorSource::None, PriorSource::IdarbSim(1.0), PriorSource::Oracle]
+}
+
 /// The sources an ablation runs, in table order: `sources`, then the sweep levels not among them
 /// (level 0 is the oracle).
 pub fn all_sources(opts: &AblationOptions) -> Vec<PriorSource> {
@@ -103,7 +109,7 @@ pub fn run_folder(out: &Path, source: &PriorSource) -> PathBuf {
 pub fn run(opts: &AblationOptions) -> Result<AblationReport> {
     let base = &opts.base;
     std::fs::create_dir_all(&base.out).with_context(|| format!("cannot create {}", base.out.display()))?;
-    let prepared = prepare(&base.scene, base.data.as_ref(), base.geometry, &base.geometry_pass, &base.fit, 1, base.progress)?;
+    let prepared = prepare_run(base, 1)?;
     let ctx = prior_context(base.fit.seed, base.idarb_weights.clone());
     let mut rows = Vec::new();
     for source in &all_sources(opts) {
@@ -119,7 +125,7 @@ pub fn run(opts: &AblationOptions) -> Result<AblationReport> {
         o.out = run_folder(&base.out, source);
         o.fit.prior_source = source.tag();
         eprintln!("ablation: {} → {}", source.tag(), o.out.display());
-        let report = run_prepared(&prepared, views, &o, &description)?;
+        let report = run_prepared(&prepared, views, &o, source, &description)?;
         rows.push(AblationRow { prior: source.tag(), description, evaluation: report.evaluation, seconds: t.elapsed().as_secs_f64() });
     }
     finish(prepared.spec.name.clone(), rows, &opts.sweep, &base.out)
@@ -143,8 +149,8 @@ pub fn finish(scene: String, rows: Vec<AblationRow>, levels: &[f64], out: &Path)
         let none = report.rows.iter().find(|r| r.prior == "none").and_then(|r| r.evaluation.relight_psnr_scaled);
         write_prior_quality_plot(&report.scene, &report.sweep, none, &out.join("prior_quality.png"))?;
     }
-    std::fs::write(out.join("ablation.json"), serde_json::to_string_pretty(&report)?)?;
-    std::fs::write(out.join("ablation.md"), report.markdown())?;
+    crate::atomic_write::write(&out.join("ablation.json"), serde_json::to_string_pretty(&report)?)?;
+    crate::atomic_write::write(&out.join("ablation.md"), report.markdown())?;
     Ok(report)
 }
 

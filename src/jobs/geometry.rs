@@ -50,7 +50,7 @@ impl GeometrySource {
 /// The material pass later trains on the full resolution.
 pub const GEOMETRY_MAX_SIDE: usize = 256;
 
-#[derive(Clone, Debug, Serialize)]
+#[derive(Clone, Debug, Serialize, serde::Deserialize)]
 pub struct HullRecord {
     pub vertices: usize,
     pub triangles: usize,
@@ -60,7 +60,7 @@ pub struct HullRecord {
     pub seconds: f64,
 }
 
-#[derive(Clone, Debug, Serialize)]
+#[derive(Clone, Debug, Serialize, serde::Deserialize)]
 pub struct PassRecord {
     pub config: GeometryPassConfig,
     pub views: usize,
@@ -145,16 +145,21 @@ pub struct GeometryOutcome {
     pub report: GeometryReport,
 }
 
-/// The geometry of a run on `dataset` from `source`.
-pub fn obtain_geometry(spec: &SceneSpec, dataset: &Dataset, source: GeometrySource, pass: &GeometryPassConfig, progress: bool) -> Result<GeometryOutcome> {
-    let (used, why) = match source {
+/// What `source` means for `spec` (`auto` decided), and why.
+pub fn resolve_source(spec: &SceneSpec, source: GeometrySource) -> Result<(GeometrySource, String)> {
+    Ok(match source {
         GeometrySource::GroundTruth => (GeometrySource::GroundTruth, "set by the run (--geometry gt)".to_string()),
         GeometrySource::Reconstruct => (GeometrySource::Reconstruct, "set by the run (--geometry reconstruct)".to_string()),
         GeometrySource::Auto if ground_truth_source(spec)?.is_some() => {
             (GeometrySource::GroundTruth, "auto: the scene's data has a ground-truth mesh".to_string())
         }
         GeometrySource::Auto => (GeometrySource::Reconstruct, "auto: the scene's data has no mesh, so it is reconstructed from the images".to_string()),
-    };
+    })
+}
+
+/// The geometry of a run on `dataset` from `source`.
+pub fn obtain_geometry(spec: &SceneSpec, dataset: &Dataset, source: GeometrySource, pass: &GeometryPassConfig, progress: bool) -> Result<GeometryOutcome> {
+    let (used, why) = resolve_source(spec, source)?;
     if progress {
         eprintln!("geometry: {} ({why})", if used == GeometrySource::GroundTruth { "the scene's mesh" } else { "reconstructed from the images" });
     }

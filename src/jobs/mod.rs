@@ -3,8 +3,12 @@
 
 pub mod ablation;
 pub mod geometry;
+pub mod geometry_cache;
 pub mod label;
+pub mod overrides;
 pub mod reconstruct;
+pub mod run_folder;
+pub mod run_identity;
 pub mod report_markdown;
 pub mod render;
 pub mod sweep;

@@ -4,9 +4,11 @@
 //!
 //! Run folder: `model/` (OBJ + MTL, glTF, kd/ks PNG), `light/` (lat-long EXR, cube faces),
 //! `renders/` (validation views under the learned light), `checkpoint/` (resume state),
-//! `report.json`, `report.md`, `plots/`.
+//! `geometry.json` (reconstructed geometry, reused by a rerun), `report.md`, `plots/`, and
+//! `report.json`, written last. What makes two runs the same run, and how a killed run resumes:
+//! docs/runs.md.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::time::Instant;
 
@@ -29,11 +31,14 @@ use crate::geometry::atlas::{self, Atlas, AtlasSource};
 use crate::geometry::bvh::Bvh;
 pub use crate::jobs::geometry::GeometrySource;
 use crate::jobs::geometry::{obtain_geometry, score_geometry, scores_summary, GeometryReport};
+use crate::jobs::geometry_cache::obtain_or_reuse;
+use crate::jobs::run_identity::RunIdentity;
+use crate::atomic_write;
 use crate::fit::geometry_pass::{interpolate, transfer_vertex_values, GeometryPassConfig};
 use crate::material::texture_maps::MaterialTextures;
 use crate::material::SurfaceParams;
 use crate::light::CubeMap;
-use crate::jobs::report_markdown::{markdown, write_plots};
+use crate::jobs::report_markdown::{markdown, write_plots, PLOTS_DIR};
 use crate::light::brdf_lut::BrdfLut;
 use crate::light::prefilter::PrefilterOptions;
 use crate::render::effects::{self, EffectChoice, Effects};
@@ -115,25 +120,57 @@ pub struct Prepared {
     pub initial_textures: Option<MaterialTextures>,
     pub effects: EffectChoice,
     pub views: Vec<TrainingView>,
+    /// Training resolution divisor of `views`.
+    pub downscale: usize,
     pub stage_seconds: Vec<(String, f64)>,
+}
+
+/// A scene's spec (its data folder replaced by `data` when given) and its dataset (view list and
+/// cameras; no image is read).
+pub fn load_scene(scene: &str, data: Option<&PathBuf>) -> Result<(SceneSpec, Dataset)> {
+    let mut spec = SceneSpec::find(scene)?;
+    if let Some(dir) = data {
+        spec = spec.with_data_dir(dir);
+    }
+    let dataset = spec.load_dataset()?;
+    Ok((spec, dataset))
 }
 
 /// Load the scene, obtain the geometry (the scene's mesh or reconstructed), build the atlas and
 /// BVH, choose the effects, trace the training views. `downscale` > 1 trains on views
 /// `downscale`× smaller (box-filtered targets).
 pub fn prepare(scene: &str, data: Option<&PathBuf>, geometry: GeometrySource, pass: &GeometryPassConfig, fit: &FitConfig, downscale: usize, progress: bool) -> Result<Prepared> {
+    prepare_in(None, scene, data, geometry, pass, fit, downscale, progress)
+}
+
+/// [`prepare`] for a run of `opts`: reconstructed geometry is kept in `opts.out` and reused from
+/// there by a rerun of the same identity (`jobs::geometry_cache`).
+pub fn prepare_run(opts: &ReconstructOptions, downscale: usize) -> Result<Prepared> {
+    prepare_in(Some(&opts.out), &opts.scene, opts.data.as_ref(), opts.geometry, &opts.geometry_pass, &opts.fit, downscale, opts.progress)
+}
+
+#[allow(clippy::too_many_arguments)]
+fn prepare_in(
+    geometry_folder: Option<&Path>,
+    scene: &str,
+    data: Option<&PathBuf>,
+    geometry: GeometrySource,
+    pass: &GeometryPassConfig,
+    fit: &FitConfig,
+    downscale: usize,
+    progress: bool,
+) -> Result<Prepared> {
     let texture_res = fit.texture_res;
     let mut stages = Vec::new();
     let t = Instant::now();
-    let mut spec = SceneSpec::find(scene)?;
-    if let Some(dir) = data {
-        spec = spec.with_data_dir(dir);
-    }
-    let dataset = spec.load_dataset()?;
+    let (spec, dataset) = load_scene(scene, data)?;
     stages.push(("load scene".to_string(), t.elapsed().as_secs_f64()));
 
     let t = Instant::now();
-    let outcome = obtain_geometry(&spec, &dataset, geometry, pass, progress)?;
+    let outcome = match geometry_folder {
+        Some(folder) => obtain_or_reuse(folder, &spec, &dataset, geometry, pass, progress)?,
+        None => obtain_geometry(&spec, &dataset, geometry, pass, progress)?,
+    };
     stages.push(("geometry".to_string(), t.elapsed().as_secs_f64()));
     let t = Instant::now();
     let mesh = outcome.mesh;
@@ -179,7 +216,7 @@ pub fn prepare(scene: &str, data: Option<&PathBuf>, geometry: GeometrySource, pa
         bail!("no training view of scene {:?} sees the mesh: check the cameras and the geometry", spec.name);
     }
     stages.push(("trace training views".to_string(), t.elapsed().as_secs_f64()));
-    Ok(Prepared { spec, dataset, atlas, bvh, geometry: geometry_report, hull: outcome.hull, initial_textures, effects, views, stage_seconds: stages })
+    Ok(Prepared { spec, dataset, atlas, bvh, geometry: geometry_report, hull: outcome.hull, initial_textures, effects, views, downscale, stage_seconds: stages })
 }
 
 /// The shading context of a run on `prepared` with `config`.
@@ -208,6 +245,8 @@ pub struct ReconstructReport {
     /// The training shading mode and why (chosen by the user or from the effects).
     pub training_mode: String,
     pub prior: String,
+    /// What the run's checkpoint and folder name stand for (docs/runs.md).
+    pub identity: RunIdentity,
     pub config: FitConfig,
     pub evaluation: Evaluation,
     pub stage_seconds: Vec<(String, f64)>,
@@ -223,12 +262,19 @@ fn atlas_description(a: &Atlas) -> String {
     }
 }
 
-/// Fit on prepared data, evaluate, and write the run folder.
-pub fn run_prepared(prepared: &Prepared, views: Vec<TrainingView>, opts: &ReconstructOptions, prior: &str) -> Result<ReconstructReport> {
+/// Fit on prepared data, evaluate, and write the run folder. `prior` is the label source and
+/// `description` its description for the report.
+///
+/// Rerunning after a kill at any point gives the same report: the fit resumes from its last
+/// checkpoint (refused when the run identity differs), and the exports and the evaluation, which
+/// are deterministic, are redone and each folder and file replaced whole (`atomic_write`);
+/// `report.json` is written last, so its presence means the run finished.
+pub fn run_prepared(prepared: &Prepared, views: Vec<TrainingView>, opts: &ReconstructOptions, prior: &PriorSource, description: &str) -> Result<ReconstructReport> {
     let mut stages = prepared.stage_seconds.clone();
     std::fs::create_dir_all(&opts.out).with_context(|| format!("cannot create the run folder {}", opts.out.display()))?;
     let effects = opts.effects_override.unwrap_or(prepared.effects.effects);
     let mut config = opts.fit.clone();
+    config.prior_source = prior.tag();
     let training_mode = if opts.auto_mode {
         let (mode, why) = auto_training_mode(&effects);
         config.mode = mode;
@@ -239,6 +285,7 @@ pub fn run_prepared(prepared: &Prepared, views: Vec<TrainingView>, opts: &Recons
     if opts.progress {
         eprintln!("training mode: {training_mode}");
     }
+    let identity = RunIdentity::new(&prepared.spec, &prepared.dataset, opts, prior, prepared.downscale)?.with_decided(effects, config.mode);
     let mut ctx = shading_context(prepared, &config);
     ctx.effects = effects;
     let start = match &prepared.initial_textures {
@@ -246,6 +293,7 @@ pub fn run_prepared(prepared: &Prepared, views: Vec<TrainingView>, opts: &Recons
         None => Parameters::initial(&config)?,
     };
     let mut fit = Fit::new(config.clone(), start, views, ctx)?;
+    fit.set_identity(identity.to_value()?);
     let checkpoint_dir = opts.out.join("checkpoint");
     if fit.resume(&checkpoint_dir)? && opts.progress {
         eprintln!("resuming from {} at iteration {}", checkpoint_dir.display(), fit.iteration());
@@ -257,11 +305,14 @@ pub fn run_prepared(prepared: &Prepared, views: Vec<TrainingView>, opts: &Recons
     let t = Instant::now();
     let textures = fit.params.textures()?;
     let light = fit.params.light_cube()?;
-    write_model(&opts.out.join("model"), &prepared.atlas.mesh, &textures)?;
-    write_light(&opts.out.join("light"), &light)?;
+    atomic_write::replace_dir(&opts.out.join("model"), |d| write_model(d, &prepared.atlas.mesh, &textures))?;
+    atomic_write::replace_dir(&opts.out.join("light"), |d| write_light(d, &light))?;
     stages.push(("export".to_string(), t.elapsed().as_secs_f64()));
 
     let t = Instant::now();
+    if opts.progress {
+        eprintln!("evaluating");
+    }
     let test_probes = prepared.spec.load_test_probes().unwrap_or_else(|e| {
         eprintln!("relighting skipped: {e:#}");
         Vec::new()
@@ -277,12 +328,15 @@ pub fn run_prepared(prepared: &Prepared, views: Vec<TrainingView>, opts: &Recons
         max_test_views: opts.eval_test_views,
     };
     let evaluated = evaluate(&prepared.dataset, &prepared.atlas.mesh, &prepared.bvh, &textures, &light, &test_probes, &settings)?;
-    for (name, img) in &evaluated.val_renders {
-        write_render(&opts.out.join("renders"), name, img)?;
-    }
-    for maps in &evaluated.val_materials {
-        write_material_maps(&opts.out.join("renders"), maps)?;
-    }
+    atomic_write::replace_dir(&opts.out.join("renders"), |d| {
+        for (name, img) in &evaluated.val_renders {
+            write_render(d, name, img)?;
+        }
+        for maps in &evaluated.val_materials {
+            write_material_maps(d, maps)?;
+        }
+        Ok(())
+    })?;
     stages.push(("evaluate".to_string(), t.elapsed().as_secs_f64()));
 
     let report = ReconstructReport {
@@ -292,17 +346,20 @@ pub fn run_prepared(prepared: &Prepared, views: Vec<TrainingView>, opts: &Recons
         atlas: atlas_description(&prepared.atlas),
         effects: prepared.effects.clone(),
         training_mode,
-        prior: prior.to_string(),
+        prior: description.to_string(),
+        identity,
         config,
         evaluation: evaluated.metrics,
         stage_seconds: stages,
         history: fit.history.clone(),
     };
-    let path = opts.out.join("report.json");
-    std::fs::write(&path, serde_json::to_string_pretty(&report)?).with_context(|| format!("cannot write {}", path.display()))?;
-    let plots = write_plots(&opts.out, &report.history)?;
-    let path = opts.out.join("report.md");
-    std::fs::write(&path, markdown(&report, &plots)).with_context(|| format!("cannot write {}", path.display()))?;
+    let mut plots = Vec::new();
+    atomic_write::replace_dir(&opts.out.join(PLOTS_DIR), |d| {
+        plots = write_plots(d, &report.history)?;
+        Ok(())
+    })?;
+    atomic_write::write(&opts.out.join("report.md"), markdown(&report, &plots))?;
+    atomic_write::write(&opts.out.join("report.json"), serde_json::to_string_pretty(&report)?)?;
     Ok(report)
 }
 
@@ -350,7 +407,7 @@ pub fn prior_context(seed: u64, idarb_weights: Option<PathBuf>) -> PriorContext 
 
 /// Prepare the scene and run (the `reconstruct` command).
 pub fn run(opts: &ReconstructOptions, prior: &PriorSource) -> Result<ReconstructReport> {
-    let prepared = prepare(&opts.scene, opts.data.as_ref(), opts.geometry, &opts.geometry_pass, &opts.fit, 1, opts.progress)?;
+    let prepared = prepare_run(opts, 1)?;
     if opts.progress {
         eprintln!("scene {}: {} training views; atlas: {}", prepared.spec.name, prepared.views.len(), atlas_description(&prepared.atlas));
         eprintln!("effects: {}", prepared.effects);
@@ -360,9 +417,7 @@ pub fn run(opts: &ReconstructOptions, prior: &PriorSource) -> Result<Reconstruct
     if opts.progress {
         eprintln!("prior: {description}");
     }
-    let mut opts = opts.clone();
-    opts.fit.prior_source = prior.tag();
-    run_prepared(&prepared, views, &opts, &description)
+    run_prepared(&prepared, views, opts, prior, &description)
 }
 
 impl ReconstructReport {

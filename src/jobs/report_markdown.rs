@@ -23,11 +23,14 @@ fn smoothed(history: &[IterationRecord], window: usize, f: impl Fn(&IterationRec
         .collect()
 }
 
-/// Writes `plots/loss.png` and `plots/psnr.png` into `dir`; returns their relative paths.
-pub fn write_plots(dir: &Path, history: &[IterationRecord]) -> Result<Vec<(String, String)>> {
+/// The run folder's plots folder (holding `loss.png` and `psnr.png`).
+pub const PLOTS_DIR: &str = "plots";
+
+/// Writes `loss.png` and `psnr.png` into `plots` (the run folder's [`PLOTS_DIR`]); returns their
+/// titles and paths relative to the run folder.
+pub fn write_plots(plots: &Path, history: &[IterationRecord]) -> Result<Vec<(String, String)>> {
     let window = (history.len() / 100).max(1);
-    let plots = dir.join("plots");
-    std::fs::create_dir_all(&plots)?;
+    std::fs::create_dir_all(plots)?;
     let loss = LinePlot {
         title: "Loss terms (weighted)".into(),
         x_label: "iteration".into(),
@@ -54,7 +57,7 @@ pub fn write_plots(dir: &Path, history: &[IterationRecord]) -> Result<Vec<(Strin
         series: vec![Series { name: "batch PSNR".into(), points: smoothed(history, window, |r| r.terms.psnr) }],
     };
     write_line_plot(&psnr, &plots.join("psnr.png"))?;
-    Ok(vec![("Loss".into(), "plots/loss.png".into()), ("Training PSNR".into(), "plots/psnr.png".into())])
+    Ok(vec![("Loss".into(), format!("{PLOTS_DIR}/loss.png")), ("Training PSNR".into(), format!("{PLOTS_DIR}/psnr.png"))])
 }
 
 fn opt(v: Option<f64>, digits: usize) -> String {

@@ -18,7 +18,8 @@ use crate::render::view::ShadingMode;
 use crate::report::pareto::pareto_front;
 use crate::report::plot::{write_pareto_plot, ScatterPoint};
 
-use super::reconstruct::{prepare, prior_context, run_prepared, views_with_prior, Prepared, ReconstructOptions};
+use super::reconstruct::{prepare_run, prior_context, run_prepared, views_with_prior, Prepared, ReconstructOptions};
+use super::run_identity::{digest_of, SHORT_DIGEST};
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct TradeoffPoint {
@@ -90,25 +91,34 @@ pub fn run(base: &ReconstructOptions, points: &[TradeoffPoint]) -> Result<Vec<Tr
     let mut results = Vec::new();
     for (k, pt) in points.iter().enumerate() {
         if !prepared.iter().any(|(d, _)| *d == pt.downscale) {
-            prepared.push((pt.downscale, prepare(&base.scene, base.data.as_ref(), base.geometry, &base.geometry_pass, &base.fit, pt.downscale, base.progress)?));
+            prepared.push((pt.downscale, prepare_run(base, pt.downscale)?));
         }
         let prep = &prepared.iter().find(|(d, _)| *d == pt.downscale).expect("prepared above").1;
         let (o, source) = point_options(base, k, pt)?;
         let ctx = prior_context(base.fit.seed, base.idarb_weights.clone());
         let (views, description) = views_with_prior(prep, &source, &ctx, pt.labelled_views)?;
         eprintln!("trade-off {}/{}: {}", k + 1, points.len(), pt.name);
-        let report = run_prepared(prep, views, &o, &description)?;
+        let report = run_prepared(prep, views, &o, &source, &description)?;
         results.push(result_of(pt, &report.evaluation, &report.stage_seconds));
         write_outputs(&base.out, &results)?;
     }
     Ok(results)
 }
 
-/// The options of point `k` (its run folder `base.out/<k>`) and its label source.
+/// The run folder of point `k` inside the trade-off folder: `<k>-<digest>`, the digest of what the
+/// point sets (mode, samples, denoiser, resolution, forced effects, prior, labelled views; not its
+/// name nor its iteration count, which extends a run), so a point list that changes between runs
+/// never resumes another point's checkpoint. (A checkpoint also refuses any run of another identity.)
+pub fn point_folder(out: &Path, k: usize, pt: &TradeoffPoint) -> PathBuf {
+    let settings = (pt.mode, pt.spp, pt.denoise, pt.downscale, pt.effects, &pt.prior, pt.labelled_views);
+    out.join(format!("{k:02}-{}", &digest_of(&settings)[..SHORT_DIGEST]))
+}
+
+/// The options of point `k` (its run folder [`point_folder`]) and its label source.
 pub fn point_options(base: &ReconstructOptions, k: usize, pt: &TradeoffPoint) -> Result<(ReconstructOptions, PriorSource)> {
     let source: PriorSource = pt.prior.parse()?;
     let mut o = base.clone();
-    o.out = base.out.join(format!("{k:02}"));
+    o.out = point_folder(&base.out, k, pt);
     o.fit.mode = pt.mode;
     o.fit.spp = pt.spp;
     o.fit.denoise = pt.denoise;
@@ -157,7 +167,7 @@ pub fn write_outputs(out: &Path, results: &[TradeoffResult]) -> Result<()> {
             o(r.albedo_psnr_scaled)
         );
     }
-    std::fs::write(out.join("tradeoff.csv"), csv)?;
+    crate::atomic_write::write(&out.join("tradeoff.csv"), csv)?;
     let points: Vec<ScatterPoint> = results
         .iter()
         .filter_map(|r| Some(ScatterPoint { label: r.point.name.clone(), x: r.optimise_seconds, y: r.relight_psnr_scaled?, group: r.point.group.clone() }))

@@ -233,9 +233,14 @@ fn filter_rows<R: Send>(sres: usize, out_res: usize, cone_angle: f32, src_tiles:
     rows.into_iter().map(|r| r.expect("every output texel belongs to one output tile")).collect()
 }
 
+/// Parts the output tiles are folded in (one accumulator each): fixed, so results do not depend on
+/// the thread count; 16 keeps 2–16 threads busy while the adjoint's source-sized buffers stay few
+/// (16 × 6·64²·3 floats ≈ 5 MB at the default light resolution).
+const FOLD_PARTS: usize = 16;
+
 /// The culling core: visits every output texel (flat index o, direction r, candidate source tiles)
-/// in parallel over 8×8 output tiles, folding into accumulators made by `init` and combined by
-/// `reduce` (few accumulators: the tiles are split into about 4 jobs per thread).
+/// in parallel over 8×8 output tiles, folding into accumulators made by `init` and combined in
+/// order by `reduce` ([`FOLD_PARTS`] contiguous parts: deterministic).
 fn fold_rows<A: Send>(
     sres: usize,
     out_res: usize,
@@ -261,11 +266,13 @@ fn fold_rows<A: Send>(
         groups[(st.face * supers_per_side + st.i0 / SUPER) * supers_per_side + st.j0 / SUPER].push(t);
     }
     let super_reach: Vec<f32> = super_tiles.iter().map(|st| cos_reach(cone_angle + st.radius + widest_out)).collect();
-    let min_len = out_tiles.len().div_ceil(4 * rayon::current_num_threads().max(1)).max(1);
-    out_tiles
-        .par_iter()
-        .with_min_len(min_len)
-        .fold(&init, |mut acc, ot| {
+    // Fixed contiguous parts folded in parallel, then combined in order: the sums come out the same
+    // bit for bit on every run and any thread count (rayon's `fold` splits where work is stolen,
+    // so the adjoint's overlapping scatters would be summed in a varying order).
+    let part_len = out_tiles.len().div_ceil(FOLD_PARTS).max(1);
+    let parts: Vec<A> = out_tiles
+        .par_chunks(part_len)
+        .map(|part| part.iter().fold(init(), |mut acc, ot| {
             let coarse: Vec<usize> = (0..super_tiles.len())
                 .filter(|&g| ot.centre.dot(super_tiles[g].centre) >= super_reach[g])
                 .flat_map(|g| groups[g].iter().copied())
@@ -281,8 +288,9 @@ fn fold_rows<A: Send>(
                 }
             }
             acc
-        })
-        .reduce(&init, &reduce)
+        }))
+        .collect();
+    parts.into_iter().reduce(reduce).unwrap_or_else(init)
 }
 
 /// Adjoint of [`kernel_filter`] without storing its matrix: every output texel's normalised row is

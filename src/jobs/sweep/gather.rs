@@ -235,7 +235,7 @@ mod tests {
         let points = crate::jobs::tradeoff::default_points(30);
         let lines = plan::tradeoff(&base, &points[..3])?;
         let Job::Reconstruct(spec) = &lines[2].job else { panic!("a reconstruct line") };
-        assert_eq!((spec.out.clone(), spec.fit.spp, spec.fit.iterations), (dir.join("tradeoff/02"), points[2].spp, 30));
+        assert_eq!((spec.out.clone(), spec.fit.spp, spec.fit.iterations), (crate::jobs::tradeoff::point_folder(&dir.join("tradeoff"), 2, &points[2]), points[2].spp, 30));
         let Job::Reconstruct(spec) = &lines[1].job else { panic!("a reconstruct line") };
         assert_eq!(spec.downscale, 2, "{:?} trains at half resolution", points[1].name);
         finish_run(&lines[0], &Evaluation { relight_psnr_scaled: Some(21.0), ..Evaluation::default() });

@@ -10,7 +10,7 @@ use std::path::PathBuf;
 use anyhow::{Context, Result};
 
 use crate::jobs::label::{self, LABELS_FILE};
-use crate::jobs::reconstruct::{prepare, prior_context, run_prepared, views_with_prior, ReconstructReport};
+use crate::jobs::reconstruct::{prepare_run, prior_context, run_prepared, views_with_prior, ReconstructReport};
 
 use super::manifest::{Job, RunSpec, SweepLine};
 
@@ -106,9 +106,9 @@ pub fn run(line: &SweepLine, force: bool) -> Result<bool> {
 pub fn run_spec(spec: &RunSpec) -> Result<ReconstructReport> {
     let source = spec.source()?;
     let opts = spec.options();
-    let prepared = prepare(&opts.scene, opts.data.as_ref(), opts.geometry, &opts.geometry_pass, &opts.fit, spec.downscale, opts.progress)?;
+    let prepared = prepare_run(&opts, spec.downscale)?;
     let ctx = prior_context(opts.fit.seed, opts.idarb_weights.clone());
     let (views, description) = views_with_prior(&prepared, &source, &ctx, opts.labelled_views)?;
     eprintln!("scene {}, prior {description} → {}", prepared.spec.name, opts.out.display());
-    run_prepared(&prepared, views, &opts, &description)
+    run_prepared(&prepared, views, &opts, &source, &description)
 }

@@ -1,0 +1,103 @@
+//! Settings given on the command line over the defaults: each option left out keeps the default
+//! of [`FitConfig`] or [`GeometryPassConfig`]. The CLI flattens these into its arguments and asks
+//! for the merged settings; the merging rules (e.g. `--prior-albedo` over `--prior-weight`) live here.
+
+use crate::fit::config::FitConfig;
+use crate::fit::geometry_pass::GeometryPassConfig;
+use crate::render::view::ShadingMode;
+
+#[derive(clap::Args, Clone, Debug, Default)]
+pub struct SettingOverrides {
+    /// Monte Carlo samples per pixel and strategy (training).
+    #[arg(long)]
+    pub spp: Option<u32>,
+    /// Cross-bilateral denoiser on the Monte Carlo buffers.
+    #[arg(long)]
+    pub denoise: bool,
+    #[arg(long)]
+    pub iterations: Option<usize>,
+    /// Views per iteration.
+    #[arg(long)]
+    pub batch: Option<usize>,
+    #[arg(long)]
+    pub texture_res: Option<usize>,
+    #[arg(long)]
+    pub light_res: Option<usize>,
+    #[arg(long)]
+    pub seed: Option<u64>,
+    /// Adam learning rate of the kd/ks textures.
+    #[arg(long)]
+    pub lr_material: Option<f64>,
+    /// Adam learning rate of the light.
+    #[arg(long)]
+    pub lr_light: Option<f64>,
+    /// Weight of the light white-balance regulariser (NVDiffRec: 0.005).
+    #[arg(long)]
+    pub light_balance: Option<f64>,
+    /// Weight of every prior component (albedo, roughness, metallic).
+    #[arg(long)]
+    pub prior_weight: Option<f64>,
+    /// Weight of the albedo component alone (overrides --prior-weight).
+    #[arg(long)]
+    pub prior_albedo: Option<f64>,
+    /// Weight of the roughness component alone.
+    #[arg(long)]
+    pub prior_roughness: Option<f64>,
+    /// Weight of the metallic component alone.
+    #[arg(long)]
+    pub prior_metallic: Option<f64>,
+    /// Iterations between checkpoints (0 = only at the end; bookkeeping: not part of the run identity).
+    #[arg(long)]
+    pub checkpoint_every: Option<usize>,
+    /// Iterations of the geometry pass (when the geometry is reconstructed).
+    #[arg(long)]
+    pub geometry_iterations: Option<usize>,
+}
+
+impl SettingOverrides {
+    /// The fit settings: the defaults, the training mode (`None` = auto, which starts from
+    /// split-sum and is decided by the job), then each option given.
+    pub fn fit_config(&self, fixed_mode: Option<ShadingMode>) -> FitConfig {
+        let mut fit = FitConfig { mode: fixed_mode.unwrap_or(ShadingMode::SplitSum), denoise: self.denoise, ..FitConfig::default() };
+        let set = |slot: &mut f64, v: Option<f64>| if let Some(v) = v { *slot = v };
+        if let Some(v) = self.spp { fit.spp = v; }
+        if let Some(v) = self.iterations { fit.iterations = v; }
+        if let Some(v) = self.batch { fit.batch = v; }
+        if let Some(v) = self.texture_res { fit.texture_res = v; }
+        if let Some(v) = self.light_res { fit.light_res = v; }
+        if let Some(v) = self.seed { fit.seed = v; }
+        if let Some(v) = self.checkpoint_every { fit.checkpoint_every = v; }
+        set(&mut fit.lr_material, self.lr_material);
+        set(&mut fit.lr_light, self.lr_light);
+        set(&mut fit.regularizers.light_white_balance, self.light_balance);
+        for slot in [&mut fit.prior.albedo, &mut fit.prior.roughness, &mut fit.prior.metallic] {
+            set(slot, self.prior_weight);
+        }
+        set(&mut fit.prior.albedo, self.prior_albedo);
+        set(&mut fit.prior.roughness, self.prior_roughness);
+        set(&mut fit.prior.metallic, self.prior_metallic);
+        fit
+    }
+
+    /// The geometry pass settings: the defaults and `--geometry-iterations`.
+    pub fn geometry_pass(&self) -> GeometryPassConfig {
+        let mut pass = GeometryPassConfig::default();
+        if let Some(v) = self.geometry_iterations { pass.iterations = v; }
+        pass
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_component_weight_overrides_the_common_one_and_the_rest_keep_defaults() {
+        let o = SettingOverrides { prior_weight: Some(2.0), prior_albedo: Some(0.5), iterations: Some(7), ..Default::default() };
+        let fit = o.fit_config(Some(ShadingMode::MonteCarlo));
+        assert_eq!((fit.prior.albedo, fit.prior.roughness, fit.prior.metallic, fit.iterations, fit.mode), (0.5, 2.0, 2.0, 7, ShadingMode::MonteCarlo));
+        assert_eq!(FitConfig { prior: fit.prior, iterations: 7, mode: ShadingMode::MonteCarlo, ..FitConfig::default() }, fit);
+        assert_eq!(SettingOverrides::default().fit_config(None), FitConfig::default());
+        assert_eq!(SettingOverrides { geometry_iterations: Some(3), ..Default::default() }.geometry_pass().iterations, 3);
+    }
+}
