@@ -1,5 +1,5 @@
 //! reconstruct: shape, material and light from multi-view images by differentiable rendering
-//! (NVDiffRecMC-style), optionally guided by IDArb pseudo-labels. See README.md and DESIGN.md.
+//! (NVDiffRecMC-style), optionally guided by IDArb pseudo-labels. See README.md and docs/model.md.
 
 pub mod atomic_write;
 pub mod color;

@@ -34,7 +34,8 @@ fn sphere_integral(axis: Vec3, w: f64, nq: usize, nphi: usize, g: impl Fn(Vec3) 
     sum
 }
 
-/// GGX lobe of the prefilter for n = v = r, from the DESIGN.md formula in f64: (l·r)·D(h)/4.
+/// GGX lobe of the prefilter for n = v = r, from the formula of docs/model.md (*Shading*) in f64:
+/// (l·r)·D(h)/4.
 fn lobe(l: Vec3, r: Vec3, roughness: f64) -> f64 {
     let c = l.dot(r) as f64;
     if c <= 0.0 {
@@ -118,7 +119,7 @@ fn sharp_light_is_blurred_by_the_right_amount() {
     }
 }
 
-/// (A, B) by brute-force quadrature of the DESIGN.md §3 formulas, written out again here in f64
+/// (A, B) by brute-force quadrature of the formulas of docs/model.md (*BRDF*), written out again here in f64
 /// (clamped cosines, height-correlated G), over the hemisphere around the mirror direction.
 fn brute_force_ab(nov: f64, roughness: f64) -> (f64, f64) {
     let r = roughness.clamp(0.08, 1.0);

@@ -4,8 +4,8 @@
 //! `interreflection/` (tools/mitsuba/make_interreflection_reference.py), checks the indirect
 //! bounces; see `interreflection_matches_mitsuba`.
 //!
-//! Two references per view: `ref_projectbrdf_*` is Mitsuba with the project's BRDF (DESIGN.md §3,
-//! as a Mitsuba Python BSDF) — that isolates the renderer (integration, sampling, light, camera,
+//! Two references per view: `ref_projectbrdf_*` is Mitsuba with the project's BRDF (docs/model.md,
+//! *BRDF*, as a Mitsuba Python BSDF) — that isolates the renderer (integration, sampling, light, camera,
 //! shadows); `ref_*` is Mitsuba's own `principled` BSDF — the independent material model, which
 //! differs by design (Disney diffuse with retro-reflection, separable Smith G, exact dielectric
 //! Fresnel), so its bound is looser.

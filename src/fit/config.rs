@@ -1,5 +1,5 @@
 //! Settings of one optimisation run (materials and light on fixed geometry). Defaults follow
-//! NVDiffRecMC where it has a counterpart (learning rates, regulariser weights, clamps), scaled to
+//! NVDiffRecMC where it has a counterpart (learning rates, regulariser weights, material clamps), scaled to
 //! a CPU budget (texture and light resolution, batch, iterations); each field says where it comes from.
 
 use serde::{Deserialize, Serialize};
@@ -7,7 +7,8 @@ use serde::{Deserialize, Serialize};
 use crate::optim::weights::RegularizerWeights;
 use crate::render::view::ShadingMode;
 
-/// Weights of the IDArb prior term (DESIGN.md §5); all zero = no prior.
+/// Weights of the IDArb prior term (docs/model.md, *Loss*); all zero = no prior. Applied only to
+/// views that have labels, so with `--prior none` they weigh nothing.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct PriorWeights {
     /// Base colour, compared sRGB-encoded (IDArb's albedo space).
@@ -57,8 +58,9 @@ pub struct FitConfig {
     /// Linear warm-up steps, then 10× decay per `decay_steps` (NVDiffRecMC: 5000).
     pub warmup_steps: usize,
     pub decay_steps: usize,
-    /// Start values (NVDiffRecMC starts kd/ks at random values in their range; a constant is
-    /// reproducible and as good here).
+    /// Start values, constant (reproducible). NVDiffRecMC's second pass starts from its first
+    /// pass's material baked into textures, and its light at 0.5 (docs/model.md, *Differences from
+    /// NVDiffRecMC*).
     pub init_kd: f32,
     pub init_roughness: f32,
     pub init_metallic: f32,

@@ -1,4 +1,4 @@
-//! Evaluation of a fitted model by the NeRFactor protocol (DESIGN.md §6):
+//! Evaluation of a fitted model by the NeRFactor protocol (docs/model.md, *Evaluation*):
 //! - albedo PSNR on the validation views, raw and after a per-channel least-squares scale
 //!   (linear values, alpha > 0.9, scale fitted on the first validation view), PSNR taken on
 //!   sRGB-encoded values;

@@ -72,7 +72,6 @@ pub fn write_light(dir: &Path, light: &CubeMap) -> Result<()> {
     Ok(())
 }
 
-/// A linear RGBA render as `stem.png` (sRGB) and `stem.exr` (linear).
 /// A view's learned material maps as PNGs: `<view>_kd.png` (sRGB), `<view>_roughness.png` and
 /// `<view>_metallic.png` (linear), beside its renders.
 pub fn write_material_maps(dir: &Path, maps: &crate::fit::evaluate::MaterialMaps) -> Result<()> {
@@ -82,6 +81,7 @@ pub fn write_material_maps(dir: &Path, maps: &crate::fit::evaluate::MaterialMaps
     write_png(&dir.join(format!("{}_metallic.png", maps.view)), &maps.metallic)
 }
 
+/// A linear RGBA render as `stem.png` (sRGB) and `stem.exr` (linear).
 pub fn write_render(dir: &Path, stem: &str, img: &Image) -> Result<()> {
     std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
     write_png(&dir.join(format!("{stem}.png")), &img.map_channels(3, |v| crate::color::linear_to_srgb(v.clamp(0.0, 1.0))))?;

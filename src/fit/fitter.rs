@@ -20,7 +20,8 @@ use super::settings_diff::differences;
 use super::parameters::Parameters;
 use super::training_view::TrainingView;
 
-/// Lower clamp of the light's radiance (NVDiffRecMC clamps the light at 0 after each step).
+/// Lower clamp of the light's radiance after each step: 0, the physical floor. NVDiffRecMC clamps at
+/// 0.01 (its comment: the light's gradient vanished at 0); docs/model.md, *Differences from NVDiffRecMC*.
 pub const LIGHT_MIN: f64 = 0.0;
 /// Roughness floor of the ks clamp (NVDiffRecMC: 0.08).
 pub const ROUGHNESS_MIN: f64 = 0.08;

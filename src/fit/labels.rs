@@ -1,5 +1,5 @@
 //! Prior labels gathered at a training view's covered pixels, as constant tensors for the prior
-//! term (DESIGN.md §5).
+//! term (docs/model.md, *Loss*).
 
 use anyhow::{ensure, Result};
 use candle_core::{Device, Tensor};

@@ -1,6 +1,7 @@
 //! Optimisation of materials and light on fixed geometry (NVDiffRecMC's second pass): the
 //! parameters, the training views, the differentiable batch render, the loss, the loop with
-//! checkpoints, and the evaluation of the result.
+//! checkpoints, and the evaluation of the result; and the geometry pass that comes before it when
+//! the shape is reconstructed (`geometry_pass`). The model they implement: docs/model.md.
 
 pub mod batch_render;
 pub mod checkpoint;

@@ -1,6 +1,7 @@
-//! The loss of one step (DESIGN.md §5): the log-sRGB L1 image loss at the covered pixels, the
-//! kd/ks smoothness regularisers (jittered lookups), the monochrome-shading regulariser (Monte Carlo
-//! buffers only) and the prior term on views that have labels.
+//! The loss of one step (docs/model.md, *Loss*): the log-sRGB L1 image loss at the covered pixels,
+//! the kd/ks smoothness regularisers (jittered lookups), the light white balance, the
+//! monochrome-shading regulariser (Monte Carlo buffers only) and the prior term on views that have
+//! labels.
 
 use anyhow::Result;
 use candle_core::{Tensor, D};
@@ -20,7 +21,9 @@ use super::config::FitConfig;
 use super::parameters::Parameters;
 use super::training_view::TrainingView;
 
-/// Jitter of the smoothness lookups in UV units (NVDiffRecMC: 0.005... of a [0, 1] texture).
+/// Standard deviation of the smoothness lookups' jitter, in UV units (per axis). NVDiffRecMC uses
+/// 0.005 too, but jitters its rendered kd/ks buffers in screen coordinates; here the textures are
+/// looked up at jittered UVs (docs/model.md, *Differences from NVDiffRecMC*).
 pub const SMOOTHNESS_JITTER: f32 = 0.005;
 
 /// The value of each term of one step (weighted), for logs and curves.

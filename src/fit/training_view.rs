@@ -1,7 +1,8 @@
 //! One training view prepared once (geometry is fixed): the G-buffer's covered pixels with their
 //! surface points and atlas UVs, and the target colour and alpha at those pixels. Everything the
 //! loop renders and compares is a list of covered pixels, not a full image: pixels the primary ray
-//! misses contribute a constant to the loss and cost nothing.
+//! misses are left out of the loss (with fixed geometry their term would be a constant) and cost
+//! nothing.
 
 use std::sync::Arc;
 

@@ -262,6 +262,18 @@ fn atlas_description(a: &Atlas) -> String {
     }
 }
 
+/// The effects a run used, for its report: the scene's choice, or the run's override (trade-off
+/// studies) with the scene's choice named beside it.
+fn reported_effects(scene: &EffectChoice, run_override: Option<Effects>) -> EffectChoice {
+    match run_override {
+        Some(e) if e != scene.effects => {
+            let chosen = EffectChoice { effects: scene.effects, reasons: Vec::new() };
+            EffectChoice { effects: e, reasons: vec![format!("set by the run instead of the scene's choice ({chosen})")] }
+        }
+        _ => scene.clone(),
+    }
+}
+
 /// Fit on prepared data, evaluate, and write the run folder. `prior` is the label source and
 /// `description` its description for the report.
 ///
@@ -344,7 +356,7 @@ pub fn run_prepared(prepared: &Prepared, views: Vec<TrainingView>, opts: &Recons
         data_dir: prepared.spec.data_dir.clone(),
         geometry: prepared.geometry.clone(),
         atlas: atlas_description(&prepared.atlas),
-        effects: prepared.effects.clone(),
+        effects: reported_effects(&prepared.effects, opts.effects_override),
         training_mode,
         prior: description.to_string(),
         identity,
@@ -452,5 +464,21 @@ impl ReconstructReport {
             s.push_str(&format!("\n{stage}: {secs:.1} s"));
         }
         s
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_report_names_the_effects_the_run_used() {
+        let scene = EffectChoice { effects: Effects::with_bounces(3), reasons: vec!["interreflection on (auto)".into()] };
+        assert_eq!(reported_effects(&scene, None).effects, scene.effects);
+        assert_eq!(reported_effects(&scene, Some(scene.effects)).reasons, scene.reasons);
+        let off = Effects { shadows: false, specular: true, indirect_bounces: 0 };
+        let r = reported_effects(&scene, Some(off));
+        assert_eq!(r.effects, off);
+        assert!(r.reasons[0].contains("instead of the scene's choice (shadows on"), "{:?}", r.reasons);
     }
 }

@@ -1,4 +1,4 @@
-//! The split-sum BRDF table (Karis 2013), computed by the project for the BRDF of DESIGN.md §3.
+//! The split-sum BRDF table (Karis 2013), computed by the project for the BRDF of docs/model.md, *BRDF*.
 //!
 //! With Schlick's F = F0·(1 − Fc) + Fc, Fc = (1 − v·h)⁵, the directional albedo of the specular
 //! lobe is F0·A + B with

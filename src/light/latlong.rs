@@ -1,5 +1,5 @@
 //! Lat-long (equirectangular) probes in Blender's convention, as the NeRFactor probes use it
-//! (see shared/data/nerfactor/hotdog_2163/README.md, "Light probes"):
+//! (docs/model.md, *Light*):
 //! d = (sinθ cosφ, sinθ sinφ, cosθ) with θ = v·π, φ = 2π(0.5 − u); u runs left to right, v top to
 //! bottom; texel (i, j) has its centre at ((j+0.5)/W, (i+0.5)/H); lookups are bilinear with
 //! periodic wrap in both axes, like Cycles' Environment Texture node.

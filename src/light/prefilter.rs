@@ -1,4 +1,4 @@
-//! The split-sum environment light of DESIGN.md §4, following NVDiffRec's scheme:
+//! The split-sum environment light (docs/model.md, *Shading*), following NVDiffRec's scheme:
 //!
 //! - a mip chain of the base cube map by 2×2 averaging, down to 16² texels;
 //! - mip level k < n−1 is prefiltered with a GGX lobe of roughness 0.08 + k/(n−2)·(0.5 − 0.08), the

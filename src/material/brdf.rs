@@ -1,4 +1,4 @@
-//! The BRDF of DESIGN.md §3 (NVDiffRecMC's): Lambert diffuse + GGX specular with α = roughness²,
+//! The BRDF of docs/model.md, *BRDF* (NVDiffRecMC's): Lambert diffuse + GGX specular with α = roughness²,
 //! height-correlated Smith masking and Schlick Fresnel; plus the sampling routines the Monte Carlo
 //! renderer and the split-sum BRDF table use (cosine hemisphere, GGX visible normals).
 //!
@@ -8,9 +8,10 @@
 //!
 //! Deviation from NVDiffRec, on purpose: NVDiffRec clamps n·h in D to [1e-4, 1−1e-4] as well. At the
 //! roughness floor (α = 0.0064) that cuts D's peak to 3 % of its true value and its integral
-//! ∫D(h)(n·h)dω to about 0.2, so here n·h is only clamped to [0, 1] and D stays normalised. The
-//! cosines with wo and wi (Λ, the 1/(4 n·wo) factor, Lambert's n·wi) and the Fresnel cosine are
-//! clamped to [1e-4, 1−1e-4] as §3 says.
+//! ∫D(h)(n·h)dω to 0.31 (by quadrature: the cap n·h > 1 − 1e-4 holds 0.83 of the lobe and keeps 3 %
+//! of its height), so here n·h is only clamped to [0, 1] and D stays normalised. The cosines with wo
+//! and wi (Λ, the 1/(4 n·wo) factor, Lambert's n·wi) and the Fresnel cosine are clamped to
+//! [1e-4, 1−1e-4].
 
 use std::f32::consts::{FRAC_1_PI, PI};
 

@@ -1,4 +1,4 @@
-//! Surface materials: the GGX/Lambert BRDF of DESIGN.md §3 and per-part material descriptions.
+//! Surface materials: the GGX/Lambert BRDF of docs/model.md (*BRDF*) and per-part material descriptions.
 
 pub mod brdf;
 pub mod brdf_grad;

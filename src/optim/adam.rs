@@ -1,7 +1,8 @@
 //! Adam (Kingma & Ba) per parameter group, with NVDiffRecMC's schedule and house-keeping:
 //! learning-rate warm-up then exponential decay (10× per `decay_steps`), a per-group gradient scale
-//! (NVDiffRecMC scales the light's gradient by 64), and a clamp after every step (kd ∈ [0, 1],
-//! roughness ∈ [0.08, 1], light ≥ 0.01 …). No weight decay.
+//! (NVDiffRecMC scales the light's gradient by 64; the fit here uses 1), and a clamp after every
+//! step (the fit's: kd ∈ [0, 1], roughness ∈ [0.08, 1], light ≥ 0; docs/model.md, *Optimiser*).
+//! No weight decay.
 //!
 //! The update runs in place on the `Var`'s storage as one rayon pass per tensor (m, v and the
 //! parameter touched once), with the same formula as torch.optim.Adam:

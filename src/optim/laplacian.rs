@@ -1,7 +1,9 @@
 //! Uniform ("umbrella") Laplacian over mesh edges, for the regulariser on vertex offsets:
 //! (L x)_i = (1/|N(i)|) Σ_{j∈N(i)} x_j − x_i, and the loss mean_i,k ((L x)_ik)².
 //! Applied to offsets from the initial mesh (NVDiffRec's "relative" mode) it keeps the optimised
-//! surface as smooth as the start. N(i) are the vertices sharing an edge with i (each edge once);
+//! surface as smooth as the start. No training run applies it today: the material and light fit
+//! keeps the vertices fixed, and the geometry pass smooths through Large Steps instead
+//! (docs/model.md, *Loss*). N(i) are the vertices sharing an edge with i (each edge once);
 //! on a closed manifold this equals NVDiffRecMC's per-triangle accumulation. Vertices duplicated
 //! along UV seams are separate vertices here, as in the mesh.
 //!

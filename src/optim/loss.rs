@@ -1,4 +1,4 @@
-//! The image loss (DESIGN.md §5, NVDiffRecMC's `logl1`): L1 between tone-mapped render and target,
+//! The image loss (docs/model.md, *Loss*; NVDiffRecMC's `logl1`): L1 between tone-mapped render and target,
 //! both masked by the ground-truth alpha, plus the MSE between rendered and ground-truth alpha.
 //!
 //! Tone map T(x) = sRGB(log(1 + clamp(x, 0, 65535))): the log compresses HDR highlights so bright

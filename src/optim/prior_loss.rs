@@ -1,4 +1,4 @@
-//! The pseudo-label prior term (DESIGN.md §5): λ · mean over masked pixels of ‖labels − rendered‖²,
+//! The pseudo-label prior term (docs/model.md, *Loss*): λ · mean over masked pixels of ‖labels − rendered‖²,
 //! the squared norm taken over the buffer's channels. Compare in the labels' space: IDArb's albedo is
 //! sRGB-encoded, so pass `srgb_encode(kd)` for base colour; roughness/metallic are compared as is.
 

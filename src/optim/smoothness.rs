@@ -1,7 +1,8 @@
 //! Material smoothness regulariser (NVDiffRecMC's kd/ks "gradient" term): for every shaded pixel,
 //! |f(uv) − f(uv + jitter)| averaged over channels, weighted by the pixel's coverage, averaged over
-//! pixels. It penalises texture variation at the scale of the jitter (σ = 0.005 in UV units there),
-//! which spreads gradients to texels the cameras barely see.
+//! pixels. It penalises texture variation at the scale of the jitter (the fit uses σ = 0.005 in UV
+//! units; NVDiffRecMC jitters in screen space instead), which spreads gradients to texels the
+//! cameras barely see.
 
 use std::sync::Arc;
 

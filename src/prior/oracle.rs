@@ -2,9 +2,9 @@
 //! (the upper bound of what any labeller could give):
 //! - albedo: the dataset stores linear base colour, IDArb predicts sRGB-encoded → encoded here;
 //! - normal: the dataset stores world-space normals, IDArb predicts camera-space ones → rotated
-//!   into the camera frame with DESIGN.md §3's axes (+x image-left, +y up, +z toward the camera:
-//!   the OpenGL camera frame with x mirrored), encoded (n + 1)/2. DESIGN.md asks to verify this on
-//!   IDArb output, which we have not had; only the x sign would change;
+//!   into the camera frame with the axes of docs/model.md, *Frames and cameras* (+x image-left, +y
+//!   up, +z toward the camera: the OpenGL camera frame with x mirrored), encoded (n + 1)/2. Not yet
+//!   verified on real IDArb output; only the x sign could change;
 //! - roughness, metallic: as stored (a dataset without them gets 0.5 / 0, with the mask kept);
 //! - mask: alpha > 0.5 (what IDArb's preprocessing uses).
 

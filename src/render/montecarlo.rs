@@ -77,7 +77,7 @@ fn luminance(c: Vec3) -> f32 {
 }
 
 /// Probability of sampling the specular lobe: its Fresnel-weighted share, kept within [0.1, 0.9]
-/// so neither lobe is starved.
+/// so neither lobe is starved; 1 when there is no diffuse lobe (kd(1−m) = 0), 0 when specular is off.
 fn specular_probability(p: &SurfaceParams, nov: f32, effects: Effects) -> f32 {
     if !effects.specular {
         return 0.0;

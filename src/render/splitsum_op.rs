@@ -1,4 +1,4 @@
-//! Differentiable split-sum shading (DESIGN.md §4): the forward of `render::splitsum::shade` as a
+//! Differentiable split-sum shading (docs/model.md, *Shading*): the forward of `render::splitsum::shade` as a
 //! tape [`Kernel`], with gradients w.r.t. the per-pixel material and the base cube map of the light.
 //!
 //! Inputs (all f32 or all f64):

@@ -265,7 +265,7 @@ def main():
         "checks": {"camera_max_angle_err_rad": cam_err, "project_brdf_eval_max_rel_err": brdf_err,
                    "project_brdf_sampling_max_sigma": round(brdf_sigma, 2)},
         "project_brdf": {"module": "tools/mitsuba/project_brdf.py",
-                         "model": "DESIGN.md section 3: Lambert kd(1-m); GGX alpha = max(r,0.08)^2, height-correlated "
+                         "model": "docs/model.md, BRDF: Lambert kd(1-m); GGX alpha = max(r,0.08)^2, height-correlated "
                                   "Smith, Schlick F with F0 = 0.04(1-m) + kd m; two-sided"},
     }
     with open(os.path.join(OUT, "scene.json"), "w") as f:

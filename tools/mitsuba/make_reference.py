@@ -10,7 +10,7 @@ What it makes (all under tests/fixtures/mitsuba/):
   ref_above.exr, ref_side.exr   linear RGBA float32 renders (alpha = pixel coverage,
                                 RGB premultiplied by coverage, i.e. background counts as 0)
   ref_projectbrdf_above.exr, ref_projectbrdf_side.exr
-                                the same renders with reconstruct's own BRDF (DESIGN.md 3,
+                                the same renders with reconstruct's own BRDF (docs/model.md,
                                 tools/mitsuba/project_brdf.py) instead of Mitsuba's principled
   aov_above.exr                 optional ground truth for view "above": straight (coverage
                                 normalised) base colour and world-space shading normal
@@ -424,7 +424,7 @@ def check_texture_uv(scene, c2w, tex_lin):
     return float(err)
 
 def check_project_brdf(project_brdf, objects=None):
-    """The Python BSDF vs an independent NumPy transcription of DESIGN.md, and its sampling
+    """The Python BSDF vs an independent NumPy transcription of its formulas, and its sampling
     weights vs a cosine-sampled estimate of the same integral (unbiasedness of sample())."""
     rng = np.random.default_rng(3)
     ctx = mi.BSDFContext()
@@ -638,7 +638,7 @@ def main():
                    "project_brdf_eval_max_rel_err": brdf_err,
                    "project_brdf_sampling_max_sigma": round(brdf_sigma, 2)},
         "project_brdf": {"module": "tools/mitsuba/project_brdf.py",
-                         "model": "DESIGN.md section 3: Lambert kd(1-m); GGX alpha = max(r,0.08)^2, height-correlated "
+                         "model": "docs/model.md, BRDF: Lambert kd(1-m); GGX alpha = max(r,0.08)^2, height-correlated "
                                   "Smith, Schlick F with F0 = 0.04(1-m) + kd m; two-sided",
                          "references": {n: "../ref_projectbrdf_%s.exr" % n for n in c2ws},
                          "psnr_db_vs_principled": {n: round(v, 1) for n, v in psnr_vs_principled.items()}},

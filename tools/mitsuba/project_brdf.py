@@ -1,4 +1,4 @@
-"""`reconstruct`'s BRDF (DESIGN.md section 3, the NVDiffRecMC model) as a Mitsuba 3 Python BSDF.
+"""`reconstruct`'s BRDF (docs/model.md, BRDF: the NVDiffRecMC model) as a Mitsuba 3 Python BSDF.
 
 Rendering the reference scene with this BSDF instead of Mitsuba's `principled` gives
 a reference whose only differences from the Rust renderer are in light transport
@@ -11,7 +11,8 @@ Model (n = shading normal, v = view = Mitsuba's si.wi, l = light = wo):
   D = alpha^2 / (pi ((n.h)^2 (alpha^2 - 1) + 1)^2)
   G = 1 / (1 + Lambda(n.v) + Lambda(n.l)),  Lambda(c) = (sqrt(1 + alpha^2 (1 - c^2) / c^2) - 1) / 2
   F = F0 + (1 - F0)(1 - v.h)^5,  F0 = 0.04 (1 - m) + kd m
-  cosines in D and Lambda clamped to [1e-4, 1 - 1e-4]; zero unless n.v > 1e-4 and n.l > 1e-4
+  cosines in D and Lambda clamped to [1e-4, 1 - 1e-4] (the Rust code clamps n.h in D to [0, 1] only;
+  docs/model.md, Evaluation, bounds the difference for these scenes); zero unless n.v > 1e-4 and n.l > 1e-4
   for the specular lobe and n.l > 0 for the diffuse lobe. Two-sided: a back-facing view
   mirrors both directions to the front.
 Sampling (only affects noise): cosine hemisphere or GGX visible normals, chosen with
@@ -136,7 +137,7 @@ def register():
 
 
 def reference_eval_numpy(kd, roughness, metallic, wi, wo):
-    """Independent NumPy transcription of DESIGN.md's formulas (for the self-check)."""
+    """Independent NumPy transcription of the formulas above (for the self-check)."""
     import numpy as np
     a = max(roughness, MIN_ROUGHNESS) ** 2
     a2 = a * a
