@@ -135,8 +135,15 @@ fn save(dir: &Path, kd: f32) -> anyhow::Result<()> {
     let dev = Device::Cpu;
     let t = |n: usize, v: f32| Tensor::full(v, (n, 1, 3), &dev).expect("test setup");
     let adam = AdamState { step: 0, slots: Vec::new() };
-    let progress = Progress { iteration: 0, fingerprint: format!("kd {kd}"), history: Vec::new(), adam_step: 0, adam_slots: Vec::new() };
-    checkpoint::save(dir, &t(4, kd), &t(4, 0.5), &t(6, 1.0), &adam, &progress)
+    let mut progress = Progress {
+        iteration: 0,
+        state_file: String::new(),
+        identity: serde_json::json!({ "kd": kd }),
+        history: Vec::new(),
+        adam_step: 0,
+        adam_slots: Vec::new(),
+    };
+    checkpoint::save(dir, &t(4, kd), &t(4, 0.5), &t(6, 1.0), &adam, &mut progress)
 }
 
 /// A full disk: every temporary file the checkpoint writer may create is a link to /dev/full, whose
@@ -149,16 +156,13 @@ fn a_full_or_unwritable_checkpoint_folder_is_named_and_the_last_checkpoint_stays
     save(&dir, 0.25).expect("first checkpoint");
     let files: Vec<PathBuf> = std::fs::read_dir(&dir).expect("test setup").filter_map(|e| e.ok()).map(|e| e.path()).collect();
     for f in &files {
-        let appended = PathBuf::from(format!("{}.tmp", f.display()));
-        for tmp in [f.with_extension("tmp"), appended] {
-            std::os::unix::fs::symlink("/dev/full", &tmp).expect("test setup");
-        }
+        std::os::unix::fs::symlink("/dev/full", reconstruct::atomic_write::partial_path(f)).expect("test setup");
     }
-    let err = save(&dir, 0.75).expect_err("a full disk must fail the save (are the temporary names still <file>.tmp?)");
+    let err = save(&dir, 0.75).expect_err("a full disk must fail the save (are the temporary names still atomic_write::partial_path?)");
     let msg = format!("{err:#}");
     assert!(msg.contains(&dir.display().to_string()), "{msg}");
     let cp = checkpoint::load(&dir).expect("the last checkpoint still loads").expect("and is there");
-    assert_eq!(cp.progress.fingerprint, "kd 0.25");
+    assert_eq!(cp.progress.identity, serde_json::json!({ "kd": 0.25 }));
     assert_eq!(cp.kd.flatten_all().and_then(|t| t.to_vec1::<f32>()).expect("f32"), vec![0.25; 12]);
 
     let blocked = tmp("blocked");
