@@ -379,9 +379,16 @@ fn checkpoint_files() {
     let dev = Device::Cpu;
     let t = |n: usize, v: f32| Tensor::full(v, (n, 1, 3), &dev).expect("test setup");
     let adam = AdamState { step: 3, slots: vec![("kd".into(), t(4, 0.1), t(4, 0.01), 3)] };
-    let progress = Progress { iteration: 0, fingerprint: "fuzz".into(), history: Vec::new(), adam_step: 3, adam_slots: vec![("kd".into(), 3)] };
+    let mut progress = Progress {
+        iteration: 0,
+        state_file: String::new(),
+        identity: serde_json::json!("fuzz"),
+        history: Vec::new(),
+        adam_step: 3,
+        adam_slots: vec![("kd".into(), 3)],
+    };
     let seed_dir = dir.join("seed");
-    checkpoint::save(&seed_dir, &t(4, 0.5), &t(4, 0.25), &t(6, 1.0), &adam, &progress).expect("test setup");
+    checkpoint::save(&seed_dir, &t(4, 0.5), &t(4, 0.25), &t(6, 1.0), &adam, &mut progress).expect("test setup");
     let files: Vec<(String, Vec<u8>)> = std::fs::read_dir(&seed_dir)
         .expect("test setup")
         .filter_map(|e| e.ok())

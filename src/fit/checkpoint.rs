@@ -85,9 +85,16 @@ pub fn load(dir: &Path) -> Result<Option<Checkpoint>> {
     let progress: Progress = serde_json::from_str(&text).with_context(|| {
         format!("{} is not a checkpoint progress file of this version of reconstruct; delete the folder {} to start afresh", progress_path.display(), dir.display())
     })?;
-    let state = dir.join(&progress.state_file);
+    // The state file is one this module names (`state_file_name`): a plain name in the same folder,
+    // never a path that leads elsewhere.
+    let name = &progress.state_file;
+    if !(name.starts_with("state-") && name.ends_with(".safetensors") && !name.contains(['/', '\\']) && !name.contains("..")) {
+        bail!("{} names {name:?} as its tensors, which is not a checkpoint state file", progress_path.display());
+    }
+    let state = dir.join(name);
     let mut tensors = crate::image::safe_decode::guard(&state, "checkpoint", || {
-        candle_core::safetensors::load(&state, &Device::Cpu).with_context(|| format!("cannot read checkpoint {}", state.display()))
+        candle_core::safetensors::load(&state, &Device::Cpu)
+            .with_context(|| format!("cannot read checkpoint {} (named by {})", state.display(), progress_path.display()))
     })?;
     // Resuming from NaN or Inf would make every later loss NaN: refuse, naming the tensor.
     for (key, t) in &tensors {
