@@ -3,7 +3,7 @@
 //! through materials, evaluation and export; the report says which geometry it used and which
 //! scores it could not compute. A view set whose masks carry no shape is refused by name.
 
-use std::path::Path;
+mod common;
 
 use reconstruct::fit::config::FitConfig;
 use reconstruct::fit::geometry_pass::GeometryPassConfig;
@@ -12,19 +12,6 @@ use reconstruct::prior::source::PriorSource;
 use reconstruct::render::view::ShadingMode;
 use reconstruct::scene::SceneSpec;
 
-fn copy_dir(from: &Path, to: &Path) -> std::io::Result<()> {
-    std::fs::create_dir_all(to)?;
-    for e in std::fs::read_dir(from)? {
-        let e = e?;
-        let target = to.join(e.file_name());
-        if e.file_type()?.is_dir() {
-            copy_dir(&e.path(), &target)?;
-        } else {
-            std::fs::copy(e.path(), target)?;
-        }
-    }
-    Ok(())
-}
 
 #[test]
 fn a_scene_without_a_mesh_is_reconstructed_end_to_end() -> anyhow::Result<()> {
@@ -32,7 +19,7 @@ fn a_scene_without_a_mesh_is_reconstructed_end_to_end() -> anyhow::Result<()> {
     default.load_dataset()?; // renders the default scene into the cache on first use
     let tmp = std::env::temp_dir().join(format!("reconstruct-no-gt-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&tmp);
-    copy_dir(&default.data_dir, &tmp.join("data"))?;
+    common::copy_dir(&default.data_dir, &tmp.join("data"))?;
     assert!(!tmp.join("data/gt").exists());
     let spec_path = tmp.join("nomesh.toml");
     std::fs::write(

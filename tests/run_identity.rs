@@ -4,6 +4,8 @@
 //! the same folder refuses with: `Fit::resume` prints exactly these, old → new). The iteration
 //! count and the checkpoint interval change neither (a rerun extends the run).
 
+mod common;
+
 use std::path::{Path, PathBuf};
 
 use anyhow::Result;
@@ -19,19 +21,6 @@ use reconstruct::render::effects::Effects;
 use reconstruct::render::view::ShadingMode;
 use reconstruct::scene::{crate_dir, SceneSpec};
 
-fn copy_dir(from: &Path, to: &Path) -> std::io::Result<()> {
-    std::fs::create_dir_all(to)?;
-    for e in std::fs::read_dir(from)? {
-        let e = e?;
-        let target = to.join(e.file_name());
-        if e.file_type()?.is_dir() {
-            copy_dir(&e.path(), &target)?;
-        } else {
-            std::fs::copy(e.path(), target)?;
-        }
-    }
-    Ok(())
-}
 
 struct Case {
     opts: ReconstructOptions,
@@ -76,7 +65,7 @@ fn each_setting_separates_runs_and_is_named() -> Result<()> {
     let _ = std::fs::remove_dir_all(&tmp);
 
     // Data: another folder with the same content, then the same folder with other content.
-    copy_dir(&spec.data_dir, &tmp.join("data"))?;
+    common::copy_dir(&spec.data_dir, &tmp.join("data"))?;
     separates(&b, "data.folder", |c| c.opts.data = Some(tmp.join("data")))?;
     let copy = Case { opts: ReconstructOptions { data: Some(tmp.join("data")), ..b.opts.clone() }, prior: PriorSource::None, downscale: 1 };
     separates(&copy, "data.content", |_| {
