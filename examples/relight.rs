@@ -10,7 +10,7 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Context, Result};
 use clap::Parser;
-use reconstruct::fit::evaluate::PROBE_CUBE_RES;
+use reconstruct::eval::protocol::PROBE_CUBE_RES;
 use reconstruct::fit::export::write_render;
 use reconstruct::geometry::bvh::Bvh;
 use reconstruct::geometry::obj::load_obj;

@@ -6,7 +6,7 @@
 mod common;
 
 use glam::Vec3;
-use reconstruct::jobs::render::protocol_psnr;
+use reconstruct::eval::metrics::protocol_psnr;
 use reconstruct::geometry::bvh::Bvh;
 use reconstruct::geometry::ground_truth::load_ground_truth;
 use reconstruct::image::Image;

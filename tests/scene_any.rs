@@ -8,7 +8,7 @@ use std::path::{Path, PathBuf};
 
 use glam::{Quat, Vec2, Vec3};
 use reconstruct::color::srgb_to_linear;
-use reconstruct::fit::evaluate::{evaluate, EvalSettings};
+use reconstruct::eval::protocol::{evaluate, EvalSettings};
 use reconstruct::geometry::bvh::Bvh;
 use reconstruct::geometry::gltf_io::write_gltf;
 use reconstruct::geometry::obj::write_obj;

@@ -149,6 +149,12 @@ pub fn over_white(rgb: &Image, alpha: &Image) -> Image {
     out
 }
 
+/// PSNR of `render` against `target` over white in sRGB, on pixels where the target's alpha > 0.8.
+pub fn protocol_psnr(render: &Image, target: &Image) -> f64 {
+    let mask = mask_from_alpha(target, 0.8);
+    psnr(&over_white(render, render), &over_white(target, target), Some(&mask))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

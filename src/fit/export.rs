@@ -74,7 +74,7 @@ pub fn write_light(dir: &Path, light: &CubeMap) -> Result<()> {
 
 /// A view's learned material maps as PNGs: `<view>_kd.png` (sRGB), `<view>_roughness.png` and
 /// `<view>_metallic.png` (linear), beside its renders.
-pub fn write_material_maps(dir: &Path, maps: &crate::fit::evaluate::MaterialMaps) -> Result<()> {
+pub fn write_material_maps(dir: &Path, maps: &crate::eval::protocol::MaterialMaps) -> Result<()> {
     std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
     write_png(&dir.join(format!("{}_kd.png", maps.view)), &maps.kd.map_channels(3, |v| crate::color::linear_to_srgb(v.clamp(0.0, 1.0))))?;
     write_png(&dir.join(format!("{}_roughness.png", maps.view)), &maps.roughness)?;

@@ -1,12 +1,11 @@
 //! Optimisation of materials and light on fixed geometry (NVDiffRecMC's second pass): the
 //! parameters, the training views, the differentiable batch render, the loss, the loop with
-//! checkpoints, and the evaluation of the result; and the geometry pass that comes before it when
-//! the shape is reconstructed (`geometry_pass`). The model they implement: docs/model.md.
+//! checkpoints, and the exports; and the geometry pass that comes before it when the shape is
+//! reconstructed (`geometry_pass`). The model they implement: docs/model.md. Evaluation: `eval`.
 
 pub mod batch_render;
 pub mod checkpoint;
 pub mod config;
-pub mod evaluate;
 pub mod export;
 pub mod fitter;
 pub mod geometry_pass;

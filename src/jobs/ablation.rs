@@ -10,7 +10,7 @@ use std::time::Instant;
 use anyhow::{Context, Result};
 use serde::Serialize;
 
-use crate::fit::evaluate::Evaluation;
+use crate::eval::protocol::Evaluation;
 use crate::prior::source::PriorSource;
 use crate::report::plot::{write_line_plot, LinePlot, Series};
 

@@ -17,7 +17,7 @@ use serde::Serialize;
 
 use crate::fit::batch_render::ShadingContext;
 use crate::fit::config::FitConfig;
-use crate::fit::evaluate::{evaluate, EvalSettings, Evaluation};
+use crate::eval::protocol::{evaluate, EvalSettings, Evaluation};
 use crate::fit::export::{write_light, write_material_maps, write_model, write_render};
 use crate::fit::fitter::Fit;
 use crate::fit::history::IterationRecord;

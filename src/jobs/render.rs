@@ -10,7 +10,7 @@ use std::time::Instant;
 use anyhow::{bail, Context, Result};
 use serde::Serialize;
 
-use crate::eval::metrics::{mask_from_alpha, over_white, psnr};
+use crate::eval::metrics::protocol_psnr;
 use crate::geometry::bvh::Bvh;
 use crate::geometry::Mesh;
 use crate::image::{io, Image};
@@ -101,12 +101,6 @@ fn reference_image(view: &View, probe: &str) -> Result<Option<Image>> {
         return view.load_relit(probe).map(Some);
     }
     Ok(None)
-}
-
-/// PSNR of `render` against `target` over white in sRGB, on pixels where the target's alpha > 0.8.
-pub fn protocol_psnr(render: &Image, target: &Image) -> f64 {
-    let mask = mask_from_alpha(target, 0.8);
-    psnr(&over_white(render, render), &over_white(target, target), Some(&mask))
 }
 
 /// Effects for the scene: `auto` decided from G-buffers of a few training views.

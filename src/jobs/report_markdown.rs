@@ -122,7 +122,7 @@ pub fn markdown(r: &ReconstructReport, plots: &[(String, String)]) -> String {
         let _ = writeln!(s, "\n### Relighting per probe (mean over test views)\n\n| probe | raw (dB) | scaled (dB) |\n|---|---:|---:|");
         for p in probes {
             let rs: Vec<_> = e.relight.iter().filter(|r| r.probe == p).collect();
-            let m = |f: &dyn Fn(&crate::fit::evaluate::RelightRecord) -> f64| rs.iter().map(|r| f(r)).sum::<f64>() / rs.len() as f64;
+            let m = |f: &dyn Fn(&crate::eval::protocol::RelightRecord) -> f64| rs.iter().map(|r| f(r)).sum::<f64>() / rs.len() as f64;
             let _ = writeln!(s, "| {p} | {:.2} | {:.2} |", m(&|r| r.psnr_raw), m(&|r| r.psnr_scaled));
         }
     }

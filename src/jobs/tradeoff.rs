@@ -10,7 +10,7 @@ use std::path::{Path, PathBuf};
 use anyhow::{Context, Result};
 use serde::{Deserialize, Serialize};
 
-use crate::fit::evaluate::Evaluation;
+use crate::eval::protocol::Evaluation;
 
 use crate::prior::source::PriorSource;
 use crate::render::effects::Effects;

@@ -12,7 +12,7 @@ use std::path::{Path, PathBuf};
 use anyhow::{Context, Result};
 use serde::Deserialize;
 
-use crate::fit::evaluate::Evaluation;
+use crate::eval::protocol::Evaluation;
 use crate::jobs::ablation::{self, AblationReport, AblationRow};
 use crate::jobs::tradeoff::{front_table, result_of, write_outputs, TradeoffResult};
 

@@ -14,11 +14,10 @@ use anyhow::{Context, Result};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
-use crate::eval::metrics::{albedo_scale, mask_from_alpha, mean_angular_error_deg, mse, psnr, scale_colour};
+use crate::eval::metrics::{albedo_scale, mask_from_alpha, mean_angular_error_deg, mse, protocol_psnr, psnr, scale_colour};
 use crate::geometry::bvh::Bvh;
 use crate::geometry::Mesh;
 use crate::image::Image;
-use crate::jobs::render::protocol_psnr;
 use crate::light::CubeMap;
 use crate::material::texture_maps::MaterialTextures;
 use crate::render::effects::Effects;
