@@ -22,7 +22,7 @@ use reconstruct::render::montecarlo::{self, McSettings};
 use reconstruct::render::ray_count::RayCount;
 use reconstruct::render::splitsum;
 use reconstruct::render::view::{ray_epsilon, PreparedLight};
-use reconstruct::scene::default_scene;
+use reconstruct::scene_data::default_scene;
 use reconstruct::scene::spec::shared_dir;
 use reconstruct::scene::Camera;
 use serde_json::json;

@@ -25,7 +25,7 @@ use reconstruct::fit::export::{write_light, write_model};
 use reconstruct::image::io::write_exr;
 use reconstruct::fit::geometry_pass::GeometryPassConfig;
 use reconstruct::jobs::reconstruct::{prepare, shading_context, GeometrySource, Prepared};
-use reconstruct::jobs::render::ground_truth_mesh;
+use reconstruct::scene_data::ground_truth_mesh;
 use reconstruct::light::CubeMap;
 use reconstruct::material::texture_maps::MaterialTextures;
 use reconstruct::render::effects::Effects;

@@ -17,3 +17,4 @@ pub mod render;
 pub mod report;
 pub mod rng;
 pub mod scene;
+pub mod scene_data;

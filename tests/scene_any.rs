@@ -26,9 +26,10 @@ use reconstruct::prior::source::{make_prior, PriorContext, PriorSource};
 use reconstruct::render::effects::Effects;
 use reconstruct::render::gbuffer::GBuffer;
 use reconstruct::render::view::{render_view, PreparedLight, RenderSettings, ShadingMode};
-use reconstruct::scene::default_scene::fixture_probe_dir;
-use reconstruct::scene::synthetic::{encode_srgb, write_nerfactor, SyntheticScene};
-use reconstruct::scene::{ground_truth_mesh, ground_truth_mesh_path, ground_truth_source, Camera, Dataset, GroundTruthSource, Layout, Probe, SceneSpec};
+use reconstruct::scene::{Camera, Dataset, Layout, Probe, SceneSpec};
+use reconstruct::scene_data::default_scene::fixture_probe_dir;
+use reconstruct::scene_data::synthetic::{encode_srgb, write_nerfactor, SyntheticScene};
+use reconstruct::scene_data::{ground_truth_mesh, ground_truth_mesh_path, ground_truth_source, GroundTruthSource};
 
 const RES: usize = 40;
 

@@ -4,7 +4,7 @@ mod common;
 
 use std::path::PathBuf;
 
-use reconstruct::render::effects::Switch;
+use reconstruct::scene::Switch;
 use reconstruct::scene::{crate_dir, shared_dir, SceneSpec};
 
 #[test]

@@ -20,7 +20,8 @@ use crate::eval::geometry_metrics::{geometry_metrics, load_judge_views, view_met
 use crate::geometry::bvh::Bvh;
 use crate::geometry::Mesh;
 use crate::scene::dataset::{Dataset, MASK_THRESHOLD};
-use crate::scene::{ground_truth_mesh, ground_truth_source, SceneSpec};
+use crate::scene::SceneSpec;
+use crate::scene_data::{ground_truth_mesh, ground_truth_source};
 
 /// Where the geometry comes from.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, serde::Deserialize)]

@@ -21,8 +21,7 @@ use crate::render::view::{render_view, PreparedLight, RenderSettings, ShadingMod
 use crate::scene::dataset::{Dataset, View};
 use crate::scene::probe::Probe;
 use crate::scene::SceneSpec;
-// Ground-truth loading lives in scene::ground_truth; re-exported for the jobs that used it from here.
-pub use crate::scene::ground_truth::{ground_truth_mesh, BUILTIN_DEFAULT_GT};
+use crate::scene_data::ground_truth_mesh;
 
 /// Resolution of the cube map a lat-long probe is converted to.
 pub const CUBE_RES: usize = 64;

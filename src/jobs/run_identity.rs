@@ -21,10 +21,12 @@ use serde::{Deserialize, Serialize};
 use crate::fit::config::FitConfig;
 use crate::fit::geometry_pass::GeometryPassConfig;
 use crate::prior::source::PriorSource;
-use crate::render::effects::{EffectSwitches, Effects};
+use crate::render::effects::Effects;
+use crate::scene::EffectSwitches;
 use crate::render::view::ShadingMode;
 use crate::scene::dataset::{Dataset, Split};
-use crate::scene::{ground_truth_source, GroundTruthSource, SceneSpec};
+use crate::scene::SceneSpec;
+use crate::scene_data::{ground_truth_source, GroundTruthSource};
 
 use super::geometry::{resolve_source, GeometrySource};
 use super::reconstruct::ReconstructOptions;

@@ -4,7 +4,6 @@
 //! shadow rays traced, no specular lobe evaluated or sampled, no secondary surface shaded).
 
 use std::fmt;
-use std::str::FromStr;
 
 use glam::Vec3;
 use serde::{Deserialize, Serialize};
@@ -15,42 +14,7 @@ use crate::material::MaterialField;
 use crate::math::Frame;
 use crate::render::gbuffer::{GBuffer, Surfel};
 use crate::rng::Sampler;
-
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
-#[serde(rename_all = "lowercase")]
-pub enum Switch {
-    #[default]
-    Auto,
-    On,
-    Off,
-}
-
-impl FromStr for Switch {
-    type Err = anyhow::Error;
-    fn from_str(s: &str) -> anyhow::Result<Self> {
-        match s {
-            "auto" => Ok(Switch::Auto),
-            "on" => Ok(Switch::On),
-            "off" => Ok(Switch::Off),
-            _ => anyhow::bail!("expected auto, on or off, got '{s}'"),
-        }
-    }
-}
-
-/// What the scene asks for, per effect.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
-#[serde(deny_unknown_fields)]
-pub struct EffectSwitches {
-    #[serde(default)]
-    pub shadows: Switch,
-    #[serde(default)]
-    pub specular: Switch,
-    #[serde(default)]
-    pub interreflection: Switch,
-    /// Indirect bounces simulated when interreflection is on (default [`DEFAULT_INDIRECT_BOUNCES`]).
-    #[serde(default)]
-    pub bounces: Option<u32>,
-}
+use crate::scene::effect_switches::{EffectSwitches, Switch};
 
 /// The effects actually simulated.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]

@@ -1,15 +1,16 @@
-//! Cameras, views and datasets (NeRFactor / NeRF-synthetic layout), scene specs and light probes.
+//! Cameras, views and datasets (NeRFactor / NeRF-synthetic layout), scene specs, the effects a
+//! spec switches on, and light probes: what a run is given, described and read. Nothing here draws
+//! or builds a mesh, so every layer above may use it; making a scene's data and loading its
+//! ground-truth mesh are in `scene_data`, above `render`.
 
 pub mod camera;
 pub mod dataset;
-pub mod default_scene;
-pub mod ground_truth;
+pub mod effect_switches;
 pub mod probe;
 pub mod spec;
-pub mod synthetic;
 
 pub use camera::Camera;
 pub use dataset::{Dataset, Layout, Split, View, ViewMetadata};
-pub use ground_truth::{ground_truth_mesh, ground_truth_mesh_path, ground_truth_source, GroundTruthSource};
+pub use effect_switches::{EffectSwitches, Switch};
 pub use probe::Probe;
 pub use spec::{cache_dir, crate_dir, shared_dir, SceneSpec};

@@ -9,9 +9,7 @@ use std::path::{Path, PathBuf};
 use anyhow::{anyhow, bail, Context, Result};
 use serde::Deserialize;
 
-pub use crate::render::effects::{EffectSwitches, Switch};
-
-use super::dataset::Dataset;
+use super::effect_switches::EffectSwitches;
 use super::probe::Probe;
 
 /// The NeRFactor relighting protocol's 8 test probes.
@@ -239,24 +237,6 @@ impl SceneSpec {
         self.ground_truth.as_ref().map(|g| self.data_dir.join(g))
     }
 
-    /// Make the data first when the project generates it (rendered once, then cached).
-    pub fn load_dataset(&self) -> Result<Dataset> {
-        match self.generator.as_deref() {
-            None => {}
-            Some("default") => crate::scene::default_scene::ensure_dataset(&self.data_dir)?,
-            Some(other) => bail!("scene {:?}: unknown generator {other:?} (known: \"default\")", self.name),
-        }
-        if !self.data_dir.is_dir() {
-            bail!(
-                "scene {:?}: data folder {} not found; pass --data DIR with the scene's data (a folder in the NeRFactor or \
-                 NeRF-synthetic layout holding transforms_train.json)",
-                self.name,
-                self.data_dir.display()
-            );
-        }
-        Dataset::load(&self.data_dir).with_context(|| format!("loading the data of scene {:?}", self.name))
-    }
-
     pub fn load_train_probe(&self) -> Result<Probe> {
         let p = self
             .train_probe
@@ -292,6 +272,7 @@ impl SceneSpec {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::scene::effect_switches::Switch;
 
     #[test]
     fn minimal_spec_gets_the_nerfactor_defaults_and_resolves_against_its_folder() {

@@ -9,9 +9,9 @@ use anyhow::{bail, Context, Result};
 
 use crate::geometry::ground_truth::{find_mesh_file, load_ground_truth};
 use crate::geometry::Mesh;
+use crate::scene::SceneSpec;
 
 use super::default_scene;
-use super::spec::SceneSpec;
 
 /// Ground-truth folder value meaning "the generator's own mesh" (see scenes/default.toml).
 pub const BUILTIN_DEFAULT_GT: &str = "builtin:default";

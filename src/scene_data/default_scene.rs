@@ -16,7 +16,7 @@ use crate::material::{BaseColor, PartMaterial, Scalar};
 use crate::render::effects::Effects;
 use crate::render::view::{RenderSettings, ShadingMode};
 use crate::scene::spec::NERFACTOR_TEST_PROBES;
-use crate::scene::synthetic::{write_nerfactor, SyntheticScene};
+use crate::scene_data::synthetic::{write_nerfactor, SyntheticScene};
 use crate::scene::{Camera, Probe};
 
 /// Bump when the scene or its rendering changes, so stale caches are rebuilt.
