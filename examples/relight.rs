@@ -14,7 +14,7 @@ use reconstruct::eval::protocol::PROBE_CUBE_RES;
 use reconstruct::fit::export::write_render;
 use reconstruct::geometry::bvh::Bvh;
 use reconstruct::geometry::obj::load_obj;
-use reconstruct::image::contact_sheet::contact_sheet;
+use reconstruct::report::contact_sheet::contact_sheet;
 use reconstruct::image::io::write_png;
 use reconstruct::light::CubeMap;
 use reconstruct::material::texture_maps::MaterialTextures;

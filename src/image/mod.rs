@@ -1,7 +1,6 @@
 //! Pictures in memory (linear f32, interleaved channels) and their files (PNG, EXR, HDR).
 
 mod buffer;
-pub mod contact_sheet;
 pub mod io;
 pub mod safe_decode;
 

@@ -4,7 +4,7 @@ use plotters::prelude::*;
 
 use crate::color::linear_to_srgb;
 use crate::image::Image;
-use crate::report::plot::{register_font, FAMILY};
+use super::plot::{register_font, FAMILY};
 
 /// Caption strip height in pixels.
 const CAPTION: usize = 20;
