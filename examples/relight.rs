@@ -10,13 +10,11 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Context, Result};
 use clap::Parser;
-use reconstruct::eval::protocol::PROBE_CUBE_RES;
 use reconstruct::fit::export::write_render;
 use reconstruct::geometry::bvh::Bvh;
 use reconstruct::geometry::obj::load_obj;
 use reconstruct::report::contact_sheet::contact_sheet;
 use reconstruct::image::io::write_png;
-use reconstruct::light::CubeMap;
 use reconstruct::material::texture_maps::MaterialTextures;
 use reconstruct::render::effects::Effects;
 use reconstruct::render::view::{render_view_with, PreparedLight, RenderSettings, ShadingMode};
@@ -85,7 +83,7 @@ fn main() -> Result<()> {
     let mut tiles = Vec::new();
     for path in &args.probes {
         let probe = Probe::load(path, args.strength)?;
-        let light = PreparedLight::new(CubeMap::from_latlong(&probe.radiance_image(), PROBE_CUBE_RES));
+        let light = PreparedLight::from_probe(&probe);
         for view in &views {
             let img = render_view_with(&mesh, &bvh, &light, &view.camera, &settings, materials);
             let stem = format!("{}_{}", view.name, probe.name);

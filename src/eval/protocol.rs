@@ -26,9 +26,6 @@ use crate::render::view::{render_view_with, PreparedLight, RenderSettings, Shadi
 use crate::scene::dataset::{Dataset, View};
 use crate::scene::probe::Probe;
 
-/// Cube-map face side test probes are converted to (as the render job).
-pub const PROBE_CUBE_RES: usize = 64;
-
 #[derive(Clone, Debug)]
 pub struct EvalSettings {
     /// Mode and samples of the relighting renders (Monte Carlo with the scene's effects by default).
@@ -226,7 +223,7 @@ pub fn evaluate(
         RenderSettings { mode: settings.relight_mode, spp: settings.spp, supersample: settings.supersample, seed: settings.seed, effects: settings.effects };
     let views: Vec<&View> = dataset.test.iter().take(settings.max_test_views.unwrap_or(usize::MAX)).collect();
     for probe in test_probes {
-        let light = PreparedLight::new(CubeMap::from_latlong(&probe.radiance_image(), PROBE_CUBE_RES));
+        let light = PreparedLight::from_probe(probe);
         for view in &views {
             if !view.has_relit(&probe.name) {
                 continue;

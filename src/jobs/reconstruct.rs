@@ -42,7 +42,6 @@ use crate::jobs::report_markdown::{markdown, write_plots, PLOTS_DIR};
 use crate::light::brdf_lut::BrdfLut;
 use crate::light::prefilter::PrefilterOptions;
 use crate::render::effects::{self, EffectChoice, Effects};
-use crate::render::gbuffer::GBuffer;
 use crate::render::splitsum_op::LightMaps;
 use crate::render::view::{ray_epsilon, ShadingMode};
 use crate::scene::dataset::Dataset;
@@ -198,13 +197,7 @@ fn prepare_in(
 
     let t = Instant::now();
     // Materials are what we solve for, so `auto` may not look at the ground-truth ones.
-    let probes: Vec<GBuffer> = dataset
-        .train
-        .iter()
-        .step_by((dataset.train.len() / 4).max(1))
-        .take(4)
-        .map(|v| GBuffer::trace(&atlas.mesh, &bvh, &v.camera.resized(64, 64)))
-        .collect();
+    let probes = effects::probe_views(&atlas.mesh, &bvh, &dataset.train);
     let effects = effects::choose(spec.effects, &atlas.mesh, &bvh, &probes, false);
     stages.push(("choose effects".to_string(), t.elapsed().as_secs_f64()));
 
@@ -231,7 +224,7 @@ pub fn shading_context(prepared: &Prepared, config: &FitConfig) -> ShadingContex
         mesh: Arc::new(prepared.atlas.mesh.clone()),
         bvh: prepared.bvh.clone(),
         light_maps: Arc::new(LightMaps::matrix_free(config.light_res, PrefilterOptions::default())),
-        lut: Arc::new(BrdfLut::compute(32, 512)),
+        lut: Arc::new(BrdfLut::standard()),
     }
 }
 

@@ -14,17 +14,12 @@ use crate::eval::metrics::protocol_psnr;
 use crate::geometry::bvh::Bvh;
 use crate::geometry::Mesh;
 use crate::image::{io, Image};
-use crate::light::CubeMap;
 use crate::render::effects::{self, EffectChoice};
-use crate::render::gbuffer::GBuffer;
 use crate::render::view::{render_view, PreparedLight, RenderSettings, ShadingMode};
 use crate::scene::dataset::{Dataset, View};
 use crate::scene::probe::Probe;
 use crate::scene::SceneSpec;
 use crate::scene_data::ground_truth_mesh;
-
-/// Resolution of the cube map a lat-long probe is converted to.
-pub const CUBE_RES: usize = 64;
 
 #[derive(Clone, Debug)]
 pub struct RenderOptions {
@@ -104,8 +99,7 @@ fn reference_image(view: &View, probe: &str) -> Result<Option<Image>> {
 
 /// Effects for the scene: `auto` decided from G-buffers of a few training views.
 pub fn choose_effects(spec: &SceneSpec, dataset: &Dataset, mesh: &Mesh, bvh: &Bvh) -> EffectChoice {
-    let views: Vec<GBuffer> = dataset.train.iter().step_by((dataset.train.len() / 4).max(1)).take(4).map(|v| GBuffer::trace(mesh, bvh, &v.camera.resized(64, 64))).collect();
-    effects::choose(spec.effects, mesh, bvh, &views, true)
+    effects::choose(spec.effects, mesh, bvh, &effects::probe_views(mesh, bvh, &dataset.train), true)
 }
 
 pub fn run(opts: &RenderOptions) -> Result<RenderReport> {
@@ -142,7 +136,7 @@ pub fn run(opts: &RenderOptions) -> Result<RenderReport> {
         .iter()
         .map(|k| {
             let (name, probe) = resolve_probe(&spec, k)?;
-            Ok((name, PreparedLight::new(CubeMap::from_latlong(&probe.radiance_image(), CUBE_RES))))
+            Ok((name, PreparedLight::from_probe(&probe)))
         })
         .collect::<Result<_>>()?;
     stage("load probes", t);
@@ -160,10 +154,7 @@ pub fn run(opts: &RenderOptions) -> Result<RenderReport> {
                 let started = Instant::now();
                 let img = render_view(&mesh, &bvh, light, &view.camera, &settings);
                 let seconds = started.elapsed().as_secs_f64();
-                let tag = match mode {
-                    ShadingMode::SplitSum => "splitsum",
-                    ShadingMode::MonteCarlo => "mc",
-                };
+                let tag = mode.tag();
                 let png = dir.join(format!("{probe}_{tag}.png"));
                 let exr = dir.join(format!("{probe}_{tag}.exr"));
                 io::write_png(&png, &img.map_channels(3, crate::color::linear_to_srgb))?;

@@ -188,12 +188,12 @@ impl GeometryIdentity {
     }
 }
 
-/// The tag of a training mode as asked: `auto`, `splitsum` or `mc`.
+/// The tag of a training mode as asked: `auto`, else the mode's own tag (`splitsum` or `mc`).
 pub fn mode_tag(auto: bool, mode: ShadingMode) -> &'static str {
-    match (auto, mode) {
-        (true, _) => "auto",
-        (false, ShadingMode::SplitSum) => "splitsum",
-        (false, ShadingMode::MonteCarlo) => "mc",
+    if auto {
+        "auto"
+    } else {
+        mode.tag()
     }
 }
 

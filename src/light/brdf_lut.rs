@@ -12,6 +12,15 @@ use rayon::prelude::*;
 
 use crate::material::brdf::{self, alpha_from_roughness};
 
+/// Side of the table every renderer and the fit use (tests build smaller ones to stay quick): 32
+/// entries along n·v and along roughness, looked up bilinearly; A and B vary smoothly along both.
+pub const SIZE: usize = 32;
+/// Visible-normal samples per entry of that table: twice the 256 with which
+/// `tests/light_splitsum.rs` (`brdf_lut_matches_brute_force_quadrature`) already finds every
+/// checked entry within 5·10⁻³ of a brute-force quadrature. The table is computed once per
+/// prepared light or fit, not per step.
+pub const SAMPLES: u32 = 512;
+
 /// A size×size table: column j ↔ n·v = (j+½)/size, row i ↔ roughness = (i+½)/size.
 #[derive(Clone, Debug)]
 pub struct BrdfLut {
@@ -50,6 +59,11 @@ pub fn integrate(nov: f32, roughness: f32, samples: u32) -> (f32, f32) {
 }
 
 impl BrdfLut {
+    /// The table of [`SIZE`]² entries with [`SAMPLES`] samples each, the one the renderers use.
+    pub fn standard() -> Self {
+        Self::compute(SIZE, SAMPLES)
+    }
+
     /// Fill a size×size table with `samples` samples per entry (rayon over entries).
     pub fn compute(size: usize, samples: u32) -> Self {
         assert!(size >= 2 && samples >= 1);

@@ -24,6 +24,14 @@ use rayon::prelude::*;
 use crate::image::Image;
 use crate::light::latlong;
 
+/// Face resolution of the cube map a given lat-long probe (a test probe, a dataset's training
+/// probe) is converted to for rendering: the render job, the relighting evaluation and the
+/// synthetic datasets' renders. 64² per face is the resolution of the learned light
+/// (`FitConfig::light_res`), so a relit render and a training render filter light alike, and it
+/// has 6 × 64² = 24 576 texels, 48 times the 32 × 16 of the NeRFactor test probes: the conversion
+/// keeps all a probe holds.
+pub const PROBE_CUBE_RES: usize = 64;
+
 /// Six square faces of `res`² texels, face-major then row-major. Face order and orientation are
 /// OpenGL's (+x, −x, +y, −y, +z, −z), in the dataset's world frame.
 #[derive(Clone, Debug)]

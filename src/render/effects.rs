@@ -15,6 +15,7 @@ use crate::math::Frame;
 use crate::render::gbuffer::{GBuffer, Surfel};
 use crate::rng::Sampler;
 use crate::scene::effect_switches::{EffectSwitches, Switch};
+use crate::scene::View;
 
 /// The effects actually simulated.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
@@ -140,10 +141,29 @@ fn set_by_scene(effect: &str, switch: Switch, reasons: &mut Vec<String>) -> bool
     on
 }
 
+/// How many training views `auto` looks at, and their side in pixels: a coarse look from a few
+/// sides spread over the training set. `auto` only asks whether the seen surface shadows or
+/// reflects onto itself noticeably, which a few small views answer. The render job and the
+/// reconstruction both look at these views.
+pub const PROBE_VIEWS: usize = 4;
+pub const PROBE_VIEW_SIDE: usize = 64;
+
+/// G-buffers of the views `auto` looks at: [`PROBE_VIEWS`] of the `train` views, evenly spaced
+/// along the list, at [`PROBE_VIEW_SIDE`]² pixels.
+pub fn probe_views(mesh: &Mesh, bvh: &Bvh, train: &[View]) -> Vec<GBuffer> {
+    train
+        .iter()
+        .step_by((train.len() / PROBE_VIEWS).max(1))
+        .take(PROBE_VIEWS)
+        .map(|v| GBuffer::trace(mesh, bvh, &v.camera.resized(PROBE_VIEW_SIDE, PROBE_VIEW_SIDE)))
+        .collect()
+}
+
 /// Resolve `auto` switches by inspecting the geometry and materials (ground truth when known).
 /// With unknown materials (`materials_known` false) specular stays on and interreflection is
 /// judged with white occluders: neither can be ruled out.
-/// `views` are G-buffers of a few training cameras: the surface that matters is the surface seen.
+/// `views` are G-buffers of a few training cameras ([`probe_views`]): the surface that matters is
+/// the surface seen.
 pub fn choose(switches: EffectSwitches, mesh: &Mesh, bvh: &Bvh, views: &[GBuffer], materials_known: bool) -> EffectChoice {
     let mut reasons = Vec::new();
     // Occlusion and interreflection are judged from the same hemisphere rays: trace them once.

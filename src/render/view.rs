@@ -12,19 +12,30 @@ use crate::image::Image;
 use crate::light::brdf_lut::BrdfLut;
 use crate::light::prefilter::SplitSumLight;
 use crate::light::sampler::LightSampler;
+use crate::light::cubemap::PROBE_CUBE_RES;
 use crate::light::CubeMap;
 use crate::material::{MaterialField, SurfaceParams};
 use crate::render::effects::Effects;
 use crate::render::gbuffer::GBuffer;
 use crate::render::montecarlo::TraceScene;
 use crate::render::{montecarlo, splitsum};
-use crate::scene::Camera;
+use crate::scene::{Camera, Probe};
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum ShadingMode {
     SplitSum,
     MonteCarlo,
+}
+
+impl ShadingMode {
+    /// The short tag in file and run-folder names: `splitsum` or `mc`.
+    pub fn tag(self) -> &'static str {
+        match self {
+            ShadingMode::SplitSum => "splitsum",
+            ShadingMode::MonteCarlo => "mc",
+        }
+    }
 }
 
 #[derive(Clone, Copy, Debug)]
@@ -44,10 +55,6 @@ impl Default for RenderSettings {
     }
 }
 
-/// Split-sum BRDF table resolution and samples per entry (computed once per light preparation).
-const BRDF_LUT_SIZE: usize = 32;
-const BRDF_LUT_SAMPLES: u32 = 512;
-
 /// An environment light with the derived data each shading mode needs, built on first use only.
 pub struct PreparedLight {
     pub cube: CubeMap,
@@ -60,8 +67,13 @@ impl PreparedLight {
         PreparedLight { cube, split_sum: OnceLock::new(), sampler: OnceLock::new() }
     }
 
+    /// A lat-long probe (at its strength) as a cube map of [`PROBE_CUBE_RES`]² faces.
+    pub fn from_probe(probe: &Probe) -> Self {
+        PreparedLight::new(CubeMap::from_latlong(&probe.radiance_image(), PROBE_CUBE_RES))
+    }
+
     pub fn split_sum(&self) -> &(SplitSumLight, BrdfLut) {
-        self.split_sum.get_or_init(|| (SplitSumLight::new(&self.cube), BrdfLut::compute(BRDF_LUT_SIZE, BRDF_LUT_SAMPLES)))
+        self.split_sum.get_or_init(|| (SplitSumLight::new(&self.cube), BrdfLut::standard()))
     }
 
     pub fn sampler(&self) -> &LightSampler {

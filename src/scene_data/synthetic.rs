@@ -12,7 +12,6 @@ use crate::color::linear_to_srgb;
 use crate::geometry::bvh::Bvh;
 use crate::geometry::Mesh;
 use crate::image::{io, Image};
-use crate::light::CubeMap;
 use crate::render::gbuffer::GBuffer;
 use crate::render::view::{render_view, PreparedLight, RenderSettings};
 use crate::scene::{Camera, Probe};
@@ -27,20 +26,17 @@ pub struct SyntheticScene {
     pub test_probes: Vec<Probe>,
 }
 
-/// Cube-map resolution used to light synthetic renders (probes here are small lat-long maps).
-const CUBE_RES: usize = 64;
-
 /// Render the scene into `dir` in the NeRFactor layout (transforms_*.json, per-view folders with
 /// rgba.png, albedo.png (linear), normal.png, roughness.png, metallic.png, depth.exr, metadata.json,
 /// and rgba_<probe>.png for test views), plus the training probe as `<name>.exr`.
 pub fn write_nerfactor(scene: &SyntheticScene, dir: &Path, settings: &RenderSettings) -> Result<()> {
     fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
     let bvh = Bvh::build(&scene.mesh);
-    let train_light = PreparedLight::new(CubeMap::from_latlong(&scene.train_probe.radiance_image(), CUBE_RES));
+    let train_light = PreparedLight::from_probe(&scene.train_probe);
     let test_lights: Vec<(String, PreparedLight)> = scene
         .test_probes
         .iter()
-        .map(|p| (p.name.clone(), PreparedLight::new(CubeMap::from_latlong(&p.radiance_image(), CUBE_RES))))
+        .map(|p| (p.name.clone(), PreparedLight::from_probe(p)))
         .collect();
     io::write_exr(&dir.join(format!("{}.exr", scene.train_probe.name)), &scene.train_probe.image)?;
 
