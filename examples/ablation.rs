@@ -11,7 +11,7 @@ use std::path::PathBuf;
 use anyhow::Result;
 use clap::Parser;
 use reconstruct::fit::config::FitConfig;
-use reconstruct::jobs::ablation::{default_out, run, write_prior_quality_plot, AblationOptions};
+use reconstruct::jobs::ablation::{default_out, default_sources, run, write_prior_quality_plot, AblationOptions, FULL_SWEEP};
 use reconstruct::jobs::reconstruct::ReconstructOptions;
 use reconstruct::jobs::sweep::plan::{self as sweep_plan, write_plan, PlanArgs};
 use reconstruct::prior::source::PriorSource;
@@ -31,7 +31,7 @@ struct Args {
     #[arg(long, default_value = "auto")]
     mode: String,
     /// idarb-sim levels of the prior-quality sweep (0 = oracle); empty for none.
-    #[arg(long, value_delimiter = ',', default_value = "0,0.5,1,1.5,2")]
+    #[arg(long, value_delimiter = ',', default_values_t = FULL_SWEEP)]
     sweep: Vec<f64>,
     /// Also run --prior labels:DIR.
     #[arg(long)]
@@ -72,7 +72,7 @@ fn main() -> Result<()> {
         return Ok(());
     }
     let base = ReconstructOptions { auto_mode: mode.is_none(), ..ReconstructOptions::new(&a.scene, fit, a.eval_spp, out.clone()) };
-    let mut sources = vec![PriorSource::None, PriorSource::IdarbSim(1.0), PriorSource::Oracle];
+    let mut sources = default_sources();
     if a.idarb {
         sources.push(PriorSource::Idarb);
     }

@@ -82,8 +82,14 @@ impl AblationReport {
     }
 }
 
-/// The sources of the `ablation` command's table: no prior, simulated IDArb labels at IDArb's
-/// published error, and the ground truth as labels (the bounds the prior can reach).
+/// The prior-quality sweep of the full ablation (`examples/ablation.rs`): idarb-sim levels from
+/// the oracle (0) through IDArb's published error (1) to twice it, in half steps. The `ablation`
+/// command is a few-minute miniature and sweeps only when asked (`--sweep`).
+pub const FULL_SWEEP: [f64; 5] = [0.0, 0.5, 1.0, 1.5, 2.0];
+
+/// The sources of every ablation's table, the `ablation` command's and the example's: no prior,
+/// simulated IDArb labels at IDArb's published error, and the ground truth as labels (the bounds
+/// the prior can reach). The example adds `idarb` and `labels:DIR` when asked.
 pub fn default_sources() -> Vec<PriorSource> {
     vec![PriorSource::None, PriorSource::IdarbSim(1.0), PriorSource::Oracle]
 }
