@@ -7,6 +7,7 @@ use std::time::Instant;
 use anyhow::{bail, Context, Result};
 use indicatif::{ProgressBar, ProgressStyle};
 
+use crate::material::brdf::MIN_ROUGHNESS;
 use crate::optim::adam::{Adam, GroupConfig, LrSchedule};
 use crate::optim::adam::set_var;
 use crate::rng::Sampler;
@@ -23,8 +24,6 @@ use super::training_view::TrainingView;
 /// Lower clamp of the light's radiance after each step: 0, the physical floor. NVDiffRecMC clamps at
 /// 0.01 (its comment: the light's gradient vanished at 0); docs/model.md, *Differences from NVDiffRecMC*.
 pub const LIGHT_MIN: f64 = 0.0;
-/// Roughness floor of the ks clamp (NVDiffRecMC: 0.08).
-pub const ROUGHNESS_MIN: f64 = 0.08;
 
 pub struct Fit {
     pub config: FitConfig,
@@ -42,7 +41,10 @@ fn optimiser(config: &FitConfig, params: &Parameters) -> Result<Adam> {
     let mut adam = Adam::new(LrSchedule { warmup_steps: config.warmup_steps, decay_steps: config.decay_steps, staircase: false });
     adam.add_group(GroupConfig::new("kd", config.lr_material).with_clamp(0.0, 1.0), vec![params.kd.clone()])?;
     adam.add_group(
-        GroupConfig::new("ks", config.lr_material).with_channel_clamp(&[0.0, ROUGHNESS_MIN, 0.0], &[0.0, 1.0, 1.0]),
+        // The roughness channel stops at the BRDF's own floor (NVDiffRecMC's 0.08 too): the BRDF
+        // clamps there, so a texel below it would render as the floor. ks is f32, so the bound is
+        // exactly MIN_ROUGHNESS.
+        GroupConfig::new("ks", config.lr_material).with_channel_clamp(&[0.0, MIN_ROUGHNESS as f64, 0.0], &[0.0, 1.0, 1.0]),
         vec![params.ks.clone()],
     )?;
     adam.add_group(GroupConfig::new("light", config.lr_light).with_clamp(LIGHT_MIN, f64::MAX), vec![params.light.clone()])?;

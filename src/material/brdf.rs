@@ -19,7 +19,8 @@ use glam::Vec3;
 
 use crate::material::SurfaceParams;
 
-/// Lowest roughness (NVDiffRec's `min_roughness`); α = roughness² ≥ 0.0064.
+/// Lowest roughness (NVDiffRec's `min_roughness`); α = roughness² ≥ 0.0064. The BRDF, the
+/// prefiltered light and the BRDF table clamp at it, and the fit clamps the roughness texture there.
 pub const MIN_ROUGHNESS: f32 = 0.08;
 /// Cosines with wo and wi are clamped to [COS_EPS, 1 − COS_EPS].
 pub const COS_EPS: f32 = 1e-4;
