@@ -20,7 +20,7 @@ use candle_core::backprop::GradStore;
 use candle_core::{CpuStorage, DType, InplaceOp2, Layout, Tensor, Var};
 use rayon::prelude::*;
 
-use super::tape::Real;
+use super::tape::{contiguous_slice, Real};
 
 /// Learning-rate multiplier over steps: linear warm-up to 1 over `warmup_steps`, then
 /// 10^(−(step − warmup)/decay_steps) (continuous; `staircase` makes it drop 10× at once every
@@ -251,12 +251,6 @@ impl AdamUpdate<'_> {
     }
 }
 
-fn slice_of<'a, T: candle_core::WithDType>(s: &'a CpuStorage, l: &Layout) -> candle_core::Result<&'a [T]> {
-    let d = T::cpu_storage_as_slice(s)?;
-    let (a, b) = l.contiguous_offsets().ok_or(candle_core::Error::RequiresContiguous { op: "adam" })?;
-    Ok(&d[a..b])
-}
-
 impl InplaceOp2 for AdamUpdate<'_> {
     fn name(&self) -> &'static str {
         "adam"
@@ -266,8 +260,8 @@ impl InplaceOp2 for AdamUpdate<'_> {
         let (a, b) = l1.contiguous_offsets().ok_or(candle_core::Error::RequiresContiguous { op: "adam" })?;
         let mut moments = self.moments.borrow_mut();
         match (s1, &mut **moments) {
-            (CpuStorage::F32(p), Moments::F32 { m, v }) => self.run(&mut p[a..b], slice_of::<f32>(s2, l2)?, m, v),
-            (CpuStorage::F64(p), Moments::F64 { m, v }) => self.run(&mut p[a..b], slice_of::<f64>(s2, l2)?, m, v),
+            (CpuStorage::F32(p), Moments::F32 { m, v }) => self.run(&mut p[a..b], contiguous_slice::<f32>("adam", s2, l2)?, m, v),
+            (CpuStorage::F64(p), Moments::F64 { m, v }) => self.run(&mut p[a..b], contiguous_slice::<f64>("adam", s2, l2)?, m, v),
             _ => return Err(candle_core::Error::Msg("adam: parameter dtype changed".into())),
         }
         Ok(())

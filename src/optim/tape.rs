@@ -179,7 +179,10 @@ pub fn apply_no_grad<K: Kernel>(kernel: K, inputs: &[&Tensor]) -> Result<Tensor>
 
 struct KernelOp<K>(Arc<K>);
 
-fn contiguous_slice<'a, T: WithDType>(name: &'static str, s: &'a CpuStorage, l: &Layout) -> Result<&'a [T]> {
+/// The elements of a contiguous CPU tensor of element type `T`, in order: how every custom op
+/// (the tape's kernels, Adam's update, the IDArb kernels) reads its inputs. A strided layout or
+/// another dtype is an error naming the op `name`.
+pub fn contiguous_slice<'a, T: WithDType>(name: &'static str, s: &'a CpuStorage, l: &Layout) -> Result<&'a [T]> {
     let data = T::cpu_storage_as_slice(s)?;
     match l.contiguous_offsets() {
         Some((a, b)) => Ok(&data[a..b]),

@@ -5,7 +5,7 @@
 //! copies), and works through blocks of queries and chunks of keys with an online softmax in a
 //! reused per-thread score buffer that stays in cache: no head permutes, no score tensors (4
 //! views at 512² would need ~15 GiB of them per layer), no fresh pages to fault in.
-use super::cpu_kernel::contiguous_f32;
+use crate::optim::tape::contiguous_slice;
 use super::linear::{linear, linear_no_bias, Linear};
 use super::matmul::{gemm, MatMut, MatRef};
 use super::scratch::Scratch;
@@ -77,7 +77,7 @@ impl CustomOp3 for AttentionKernel {
     }
 
     fn cpu_fwd(&self, qs: &CpuStorage, ql: &Layout, ks: &CpuStorage, kl: &Layout, vs: &CpuStorage, vl: &Layout) -> Result<(CpuStorage, Shape)> {
-        let (q, k, v) = (contiguous_f32(qs, ql, self.name())?, contiguous_f32(ks, kl, self.name())?, contiguous_f32(vs, vl, self.name())?);
+        let (q, k, v) = (contiguous_slice::<f32>(self.name(), qs, ql)?, contiguous_slice::<f32>(self.name(), ks, kl)?, contiguous_slice::<f32>(self.name(), vs, vl)?);
         let (rows, lq, hd) = ql.shape().dims3()?;
         let (krows, lk, khd) = kl.shape().dims3()?;
         let JointRows { blocks, stride } = self.joint;

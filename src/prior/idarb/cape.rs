@@ -5,7 +5,7 @@
 //! the `P` pose values covers a contiguous block of `C/P` channels), pairwise on **adjacent**
 //! channels: (x₂ᵢ, x₂ᵢ₊₁) ↦ (x₂ᵢ cos θ − x₂ᵢ₊₁ sin θ, x₂ᵢ₊₁ cos θ + x₂ᵢ sin θ). Because each pair is a
 //! plane rotation, q'·k' depends only on the pose difference of the two views.
-use super::cpu_kernel::contiguous_f32;
+use crate::optim::tape::contiguous_slice;
 use candle_core::{bail, CpuStorage, CustomOp2, Layout, Result, Shape, Tensor};
 use rayon::prelude::*;
 
@@ -26,7 +26,7 @@ impl CustomOp2 for Cape {
     }
 
     fn cpu_fwd(&self, xs: &CpuStorage, xl: &Layout, ps: &CpuStorage, pl: &Layout) -> Result<(CpuStorage, Shape)> {
-        let (x, pose) = (contiguous_f32(xs, xl, self.name())?, contiguous_f32(ps, pl, self.name())?);
+        let (x, pose) = (contiguous_slice::<f32>(self.name(), xs, xl)?, contiguous_slice::<f32>(self.name(), ps, pl)?);
         let (rows, l, c) = xl.shape().dims3()?;
         let (b, n, p) = pl.shape().dims3()?;
         if rows != b * n * self.num_domains || p == 0 || c % (2 * p) != 0 {

@@ -5,7 +5,7 @@
 //! per-image bias (time embedding) or a residual when given, so those cost no pass of their own.
 //! candle-core 0.9's conv2d spent as long in its im2col as in the product, faulted in a fresh
 //! buffer each call, and got C = H = W inputs wrong.
-use super::cpu_kernel::contiguous_f32;
+use crate::optim::tape::contiguous_slice;
 use super::matmul::{gemm, MatMut, MatRef};
 use super::scratch::Scratch;
 use candle_core::{bail, CpuStorage, CustomOp2, CustomOp3, Layout, Module, Result, Shape, Tensor};
@@ -181,7 +181,7 @@ impl CustomOp2 for ConvKernel<'_> {
     }
 
     fn cpu_fwd(&self, xs: &CpuStorage, xl: &Layout, ws: &CpuStorage, wl: &Layout) -> Result<(CpuStorage, Shape)> {
-        self.run(contiguous_f32(xs, xl, "conv2d")?, xl, contiguous_f32(ws, wl, "conv2d")?, wl, None)
+        self.run(contiguous_slice::<f32>("conv2d", xs, xl)?, xl, contiguous_slice::<f32>("conv2d", ws, wl)?, wl, None)
     }
 }
 
@@ -191,7 +191,7 @@ impl CustomOp3 for ConvKernel<'_> {
     }
 
     fn cpu_fwd(&self, xs: &CpuStorage, xl: &Layout, ws: &CpuStorage, wl: &Layout, es: &CpuStorage, el: &Layout) -> Result<(CpuStorage, Shape)> {
-        self.run(contiguous_f32(xs, xl, "conv2d")?, xl, contiguous_f32(ws, wl, "conv2d")?, wl, Some((contiguous_f32(es, el, "conv2d")?, el)))
+        self.run(contiguous_slice::<f32>("conv2d", xs, xl)?, xl, contiguous_slice::<f32>("conv2d", ws, wl)?, wl, Some((contiguous_slice::<f32>("conv2d", es, el)?, el)))
     }
 }
 

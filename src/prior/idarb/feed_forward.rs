@@ -3,7 +3,7 @@
 //! state and the gated 4C never exist for all tokens at once (at 512² with 4 views they would be
 //! 0.5 and 0.25 GiB of fresh memory per block, faulted in page by page), only per chunk in reused
 //! buffers.
-use super::cpu_kernel::contiguous_f32;
+use crate::optim::tape::contiguous_slice;
 use super::geglu::geglu_rows;
 use super::linear::{linear, Linear};
 use super::scratch::Scratch;
@@ -43,7 +43,7 @@ impl CustomOp2 for FeedForwardKernel<'_> {
     }
 
     fn cpu_fwd(&self, xs: &CpuStorage, xl: &Layout, rs: &CpuStorage, rl: &Layout) -> Result<(CpuStorage, Shape)> {
-        let (x, residual) = (contiguous_f32(xs, xl, self.name())?, contiguous_f32(rs, rl, self.name())?);
+        let (x, residual) = (contiguous_slice::<f32>(self.name(), xs, xl)?, contiguous_slice::<f32>(self.name(), rs, rl)?);
         let c = self.ff.dim;
         if xl.dims().last() != Some(&c) || rl.shape() != xl.shape() {
             bail!("feed-forward: input {:?}, residual {:?}, {c} channels", xl.shape(), rl.shape());

@@ -2,7 +2,7 @@
 //! (8192+ values per group here), which moves the SD VAE's output by ~2e-4 against PyTorch;
 //! accumulating in f64 keeps the port within float32 noise of the reference. One parallel pass,
 //! with the SiLU that follows most norms fused in.
-use super::cpu_kernel::contiguous_f32;
+use crate::optim::tape::contiguous_slice;
 use super::vector_math::silu;
 use candle_core::{bail, CpuStorage, CustomOp1, DType, Layout, Module, Result, Shape, Tensor};
 use candle_nn::VarBuilder;
@@ -100,7 +100,7 @@ impl CustomOp1 for GroupNormKernel<'_> {
     }
 
     fn cpu_fwd(&self, s: &CpuStorage, l: &Layout) -> Result<(CpuStorage, Shape)> {
-        let x = contiguous_f32(s, l, self.name())?;
+        let x = contiguous_slice::<f32>(self.name(), s, l)?;
         let dims = l.dims();
         let g = self.norm;
         if dims.len() < 2 || dims[1] != g.weight.len() {

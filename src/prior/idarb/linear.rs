@@ -1,7 +1,7 @@
 //! torch's `Linear` for inference, y = x Wᵀ + b (+ a residual), as one product accumulating onto
 //! rows that start as the bias (and residual): candle-nn's Linear multiplies, then adds the bias
 //! in a second pass into a second fresh tensor, and a residual add would be a third.
-use super::cpu_kernel::contiguous_f32;
+use crate::optim::tape::contiguous_slice;
 use super::matmul::{gemm, MatMut, MatRef};
 use candle_core::{bail, CpuStorage, CustomOp2, CustomOp3, Layout, Module, Result, Shape, Storage, Tensor};
 use candle_nn::VarBuilder;
@@ -37,7 +37,7 @@ impl Linear {
     pub fn product_into(&self, x: &[f32], dst: &mut [f32], accumulate: bool) -> Result<()> {
         let (storage, layout) = self.weight.storage_and_layout();
         let w = match &*storage {
-            Storage::Cpu(s) => contiguous_f32(s, layout, "linear")?,
+            Storage::Cpu(s) => contiguous_slice::<f32>("linear", s, layout)?,
             _ => bail!("linear: CPU tensors only"),
         };
         product_into(x, w, layout, self.bias.as_deref(), dst, accumulate)
@@ -110,7 +110,7 @@ impl CustomOp2 for LinearKernel<'_> {
     }
 
     fn cpu_fwd(&self, xs: &CpuStorage, xl: &Layout, ws: &CpuStorage, wl: &Layout) -> Result<(CpuStorage, Shape)> {
-        self.run(contiguous_f32(xs, xl, "linear")?, xl, contiguous_f32(ws, wl, "linear")?, wl, None)
+        self.run(contiguous_slice::<f32>("linear", xs, xl)?, xl, contiguous_slice::<f32>("linear", ws, wl)?, wl, None)
     }
 }
 
@@ -120,7 +120,7 @@ impl CustomOp3 for LinearKernel<'_> {
     }
 
     fn cpu_fwd(&self, xs: &CpuStorage, xl: &Layout, ws: &CpuStorage, wl: &Layout, rs: &CpuStorage, rl: &Layout) -> Result<(CpuStorage, Shape)> {
-        self.run(contiguous_f32(xs, xl, "linear")?, xl, contiguous_f32(ws, wl, "linear")?, wl, Some((contiguous_f32(rs, rl, "linear")?, rl)))
+        self.run(contiguous_slice::<f32>("linear", xs, xl)?, xl, contiguous_slice::<f32>("linear", ws, wl)?, wl, Some((contiguous_slice::<f32>("linear", rs, rl)?, rl)))
     }
 }
 

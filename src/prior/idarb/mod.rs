@@ -12,7 +12,6 @@ pub mod attention;
 pub mod autoencoder_kl;
 pub mod cape;
 pub mod conv;
-pub mod cpu_kernel;
 pub mod feed_forward;
 pub mod geglu;
 pub mod group_norm;
