@@ -15,7 +15,7 @@ use crate::geometry::Mesh;
 use crate::image::Image;
 use crate::render::denoise::DenoiseGuides;
 use crate::render::gbuffer::{GBuffer, Surfel};
-use crate::scene::dataset::View;
+use crate::scene::dataset::{self, View};
 use crate::scene::Camera;
 
 use super::labels::PixelLabels;
@@ -87,7 +87,7 @@ impl TrainingView {
         let n = pixels.len();
         let alpha: Vec<f32> = rgba.data.chunks_exact(4).map(|p| p[3]).collect();
         let mesh_covered: Vec<bool> = gbuf.surfels.iter().map(Option::is_some).collect();
-        let mask_pixels = alpha.iter().filter(|&&a| a >= MASK_THRESHOLD).count();
+        let mask_pixels = dataset::mask_pixels(alpha.iter().copied(), MASK_THRESHOLD);
         let silhouette_disagreement = silhouette_disagreement(&mesh_covered, &alpha, camera.width, camera.height);
         Ok(TrainingView {
             name: name.to_string(),

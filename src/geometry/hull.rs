@@ -52,6 +52,7 @@ use crate::geometry::{Mesh, Part};
 use crate::image::Image;
 use crate::material::{BaseColor, PartMaterial, Scalar};
 use crate::scene::camera::median_pixel_footprint;
+use crate::scene::dataset::mask_pixels;
 use crate::scene::Camera;
 
 /// One training view's silhouette.
@@ -313,7 +314,7 @@ fn check_masks(views: &[MaskView], threshold: f32) -> Result<Vec<(usize, String)
             ));
             continue;
         }
-        let covered = a.data.iter().filter(|&&c| c >= threshold).count();
+        let covered = mask_pixels(a.data.iter().copied(), threshold);
         if covered == a.data.len() {
             opaque.push(label(i, v));
         } else if covered == 0 {

@@ -19,7 +19,7 @@ use crate::geometry::hull::{visual_hull, HullOptions, MaskView};
 use crate::eval::geometry_metrics::{geometry_metrics, load_judge_views, view_metrics, GeometryMetricOptions, GeometryMetrics, ViewMetrics};
 use crate::geometry::bvh::Bvh;
 use crate::geometry::Mesh;
-use crate::scene::dataset::{Dataset, MASK_THRESHOLD};
+use crate::scene::dataset::{mask_pixels, Dataset, MASK_THRESHOLD};
 use crate::scene::SceneSpec;
 use crate::scene_data::{ground_truth_mesh, ground_truth_source};
 
@@ -180,7 +180,7 @@ fn geometry_views(dataset: &Dataset) -> Result<Vec<GeometryView>> {
     let mut empty = Vec::new();
     for v in &dataset.train {
         let rgba = v.load_rgba().with_context(|| format!("geometry pass: training view {}", v.name))?;
-        if !rgba.data.chunks_exact(4).any(|p| p[3] >= MASK_THRESHOLD) {
+        if mask_pixels(rgba.data.chunks_exact(4).map(|p| p[3]), MASK_THRESHOLD) == 0 {
             empty.push(v.name.clone());
             continue;
         }

@@ -30,6 +30,14 @@ use crate::image::Image;
 /// screening all cut the masks here.
 pub const MASK_THRESHOLD: f32 = 0.5;
 
+/// How many of the coverage values `alpha` lie inside the mask, i.e. are at least `threshold`
+/// ([`MASK_THRESHOLD`] but where a caller's options say otherwise). None means the view's mask is
+/// empty: the view does not show the object, and the visual hull, the geometry pass and the view
+/// screening all leave it out (each with its own warning).
+pub fn mask_pixels(alpha: impl IntoIterator<Item = f32>, threshold: f32) -> usize {
+    alpha.into_iter().filter(|&a| a >= threshold).count()
+}
+
 /// Which of the three lists of views.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Split {
