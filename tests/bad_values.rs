@@ -18,7 +18,7 @@ use reconstruct::geometry::Mesh;
 use reconstruct::image::Image;
 use reconstruct::material::{BaseColor, PartMaterial, Scalar};
 use reconstruct::optim::adam::AdamState;
-use reconstruct::prior::idarb::labels::ViewLabels;
+use reconstruct::prior::view_labels::ViewLabels;
 use reconstruct::render::gbuffer::GBuffer;
 use reconstruct::scene::Camera;
 

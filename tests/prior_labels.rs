@@ -9,7 +9,7 @@ use reconstruct::image::Image;
 use reconstruct::optim::gradcheck::check_gradient;
 use reconstruct::optim::prior_loss::prior_loss;
 use reconstruct::optim::srgb::srgb_encode;
-use reconstruct::prior::idarb::labels::ViewLabels;
+use reconstruct::prior::view_labels::ViewLabels;
 use reconstruct::prior::oracle::view_labels;
 use reconstruct::prior::source::{make_prior, PriorContext, PriorSource};
 use reconstruct::scene::dataset::Dataset;

@@ -8,7 +8,7 @@ mod common;
 
 use anyhow::Result;
 use reconstruct::eval::label_metrics::{masked_mse, normal_cosine_similarity, scale_invariant_albedo_psnr};
-use reconstruct::prior::idarb::labels::ViewLabels;
+use reconstruct::prior::view_labels::ViewLabels;
 use reconstruct::prior::oracle::view_labels;
 use reconstruct::prior::source::{make_prior, PriorContext, PriorSource};
 use reconstruct::scene::SceneSpec;

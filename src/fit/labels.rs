@@ -5,7 +5,7 @@ use anyhow::{ensure, Result};
 use candle_core::{Device, Tensor};
 
 use crate::image::Image;
-use crate::prior::idarb::labels::ViewLabels;
+use crate::prior::view_labels::ViewLabels;
 
 /// Labels at the covered pixels of one view: [n, 1, C] columns (see `TrainingView::target`).
 #[derive(Clone)]

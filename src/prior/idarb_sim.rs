@@ -30,7 +30,7 @@ use crate::image::Image;
 use crate::rng::Sampler;
 use crate::scene::dataset::{Dataset, View};
 
-use super::idarb::labels::ViewLabels;
+use super::view_labels::ViewLabels;
 use super::oracle::view_labels;
 use super::source::Prior;
 

@@ -19,7 +19,7 @@ use crate::image::io::read_png;
 use crate::image::Image;
 use crate::scene::dataset::{Dataset, View};
 
-use super::idarb::labels::ViewLabels;
+use super::view_labels::ViewLabels;
 use super::source::Prior;
 
 pub struct LabelsDir {

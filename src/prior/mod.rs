@@ -6,3 +6,6 @@ pub mod idarb_sim;
 pub mod labels_dir;
 pub mod oracle;
 pub mod source;
+pub mod view_labels;
+
+pub use view_labels::ViewLabels;

@@ -14,7 +14,7 @@ use glam::Vec3;
 use crate::image::Image;
 use crate::scene::dataset::{Dataset, View};
 
-use super::idarb::labels::ViewLabels;
+use super::view_labels::ViewLabels;
 use super::source::Prior;
 
 pub struct Oracle;

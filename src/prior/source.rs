@@ -10,7 +10,8 @@ use anyhow::{bail, Context, Result};
 use crate::image::Image;
 use crate::scene::dataset::Dataset;
 
-use super::idarb::labels::{labels_for_named_views, IdarbOptions, ViewLabels};
+use super::idarb::labels::{labels_for_named_views, IdarbOptions};
+use super::view_labels::ViewLabels;
 use super::idarb::preprocess::pose_from_camera_origin;
 use super::idarb_sim::SimulatedIdarb;
 use super::labels_dir::LabelsDir;

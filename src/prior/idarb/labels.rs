@@ -7,6 +7,7 @@ use super::scheduling_ddim::DdimScheduler;
 use super::unet_dr2d_condition::unet_forward_flops;
 use super::weights::{floats_hash, resolve_weights_dir, WeightFiles, NO_WEIGHTS_MESSAGE};
 use crate::image::Image;
+use crate::prior::view_labels::ViewLabels;
 use crate::rng::Sampler;
 use anyhow::{bail, Context, Result};
 use candle_core::{Device, Tensor};
@@ -44,21 +45,6 @@ impl Default for IdarbOptions {
     fn default() -> Self {
         Self { target_size: 512, steps: 50, eta: 1.0, seed: 0, views_per_group: 4, input_encoding: InputEncoding::Srgb, progress: true }
     }
-}
-
-/// Labels of one view, at the view's original size; values in [0, 1].
-#[derive(Debug, Clone)]
-pub struct ViewLabels {
-    /// Base colour, sRGB-encoded (as IDArb predicts it). 3 channels.
-    pub albedo: Image,
-    /// Camera-space normal encoded (n + 1)/2. 3 channels.
-    pub normal: Image,
-    /// Red channel of the third map. 1 channel.
-    pub metallic: Image,
-    /// Green channel of the third map. 1 channel.
-    pub roughness: Image,
-    /// The input mask (alpha > 0.5) the network saw, mapped back. 1 channel.
-    pub mask: Image,
 }
 
 /// Labels for `views` (RGBA, encoded as `opts.input_encoding`). `poses` are CaPE angles per view

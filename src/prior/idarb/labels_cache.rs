@@ -2,7 +2,7 @@
 //! hashes, weight hashes). A cache is reused only when its key (options + inputs) matches.
 //! The maps are named `<view>_<map>.png` (albedo, normal, metallic, roughness, plus the mask), the
 //! per-map layout `--prior labels:DIR` reads, so a cache folder is also a labels folder.
-use super::labels::ViewLabels;
+use crate::prior::view_labels::ViewLabels;
 use crate::image::Image;
 use anyhow::{bail, Context, Result};
 use serde_json::Value;

@@ -34,7 +34,7 @@ pub mod unet_dr2d_condition;
 pub mod vector_math;
 pub mod weights;
 
-pub use labels::{labels_for_views, run_network, IdarbOptions, InputEncoding, ViewLabels};
+pub use labels::{labels_for_views, run_network, IdarbOptions, InputEncoding};
 pub use pipeline_idarbdiffusion::IdarbPipeline;
 pub use preprocess::{default_pose, pose_from_camera_origin};
 pub use weights::{resolve_weights_dir, WeightFiles, NO_WEIGHTS_MESSAGE, WEIGHTS_ENV};
