@@ -6,10 +6,10 @@
 //! reused per-thread score buffer that stays in cache: no head permutes, no score tensors (4
 //! views at 512² would need ~15 GiB of them per layer), no fresh pages to fault in.
 use crate::optim::tape::contiguous_slice;
-use super::linear::{linear, linear_no_bias, Linear};
-use super::matmul::{gemm, MatMut, MatRef};
-use super::scratch::Scratch;
-use super::softmax::OnlineSoftmax;
+use super::kernels::linear::{linear, linear_no_bias, Linear};
+use super::kernels::matmul::{gemm, MatMut, MatRef};
+use super::kernels::scratch::Scratch;
+use super::kernels::softmax::OnlineSoftmax;
 use candle_core::{bail, CpuStorage, CustomOp3, Layout, Module, Result, Shape, Tensor};
 use candle_nn::VarBuilder;
 use rayon::prelude::*;

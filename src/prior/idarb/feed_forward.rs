@@ -4,9 +4,9 @@
 //! 0.5 and 0.25 GiB of fresh memory per block, faulted in page by page), only per chunk in reused
 //! buffers.
 use crate::optim::tape::contiguous_slice;
-use super::geglu::geglu_rows;
-use super::linear::{linear, Linear};
-use super::scratch::Scratch;
+use super::kernels::geglu::geglu_rows;
+use super::kernels::linear::{linear, Linear};
+use super::kernels::scratch::Scratch;
 use candle_core::{bail, CpuStorage, CustomOp2, Layout, Result, Shape, Tensor};
 use candle_nn::VarBuilder;
 

@@ -6,32 +6,26 @@
 //! [`resnet`], [`attention`]; [`autoencoder_kl`] (VAE); [`scheduling_ddim`]; [`preprocess`];
 //! [`pipeline_idarbdiffusion`] (sampling loop); the prompt embeddings from the folder's own
 //! [`tokenization_clip`] and [`modeling_clip`] text tower ([`text_embeddings`]); [`weights`];
-//! [`labels`] and [`labels_cache`].
+//! [`labels`] and [`labels_cache`]. The CPU kernels these run on (fused convolution, linear,
+//! group norm, GEGLU, matrix products, softmax) are in [`kernels`], apart from the mirrored modules.
 
 pub mod attention;
 pub mod autoencoder_kl;
 pub mod cape;
-pub mod conv;
 pub mod feed_forward;
-pub mod geglu;
-pub mod group_norm;
+pub mod kernels;
 pub mod labels;
 pub mod labels_cache;
-pub mod linear;
-pub mod matmul;
 pub mod modeling_clip;
 pub mod pipeline_idarbdiffusion;
 pub mod preprocess;
 pub mod resnet;
 pub mod scheduling_ddim;
-pub mod scratch;
-pub mod softmax;
 pub mod text_embeddings;
 pub mod tokenization_clip;
 pub mod transformer_dr2d;
 pub mod unet_dr2d_blocks;
 pub mod unet_dr2d_condition;
-pub mod vector_math;
 pub mod weights;
 
 pub use labels::{labels_for_views, run_network, IdarbOptions, InputEncoding};

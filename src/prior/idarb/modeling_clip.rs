@@ -3,7 +3,7 @@
 //! embeddings, pre-LayerNorm transformer layers with causal self-attention, the final LayerNorm;
 //! the output is `last_hidden_state` [B, L, hidden]. Struct, field and weight names follow the
 //! official module one-to-one (`text_model.encoder.layers.{i}.self_attn.q_proj`, …).
-use super::linear::{linear, Linear};
+use super::kernels::linear::{linear, Linear};
 use anyhow::{bail, Context};
 use candle_core::{DType, Module, Result, Tensor};
 use candle_nn::{embedding, layer_norm, Embedding, LayerNorm, VarBuilder};

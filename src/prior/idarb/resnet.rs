@@ -1,8 +1,8 @@
 //! diffusers `ResnetBlock2D`, `Downsample2D` and `Upsample2D` (shared by the UNet and the VAE).
 use candle_core::{Module, Result, Tensor};
-use super::conv::{conv2d, Conv2d};
-use super::group_norm::{group_norm, GroupNorm};
-use super::linear::{linear, Linear};
+use super::kernels::conv::{conv2d, Conv2d};
+use super::kernels::group_norm::{group_norm, GroupNorm};
+use super::kernels::linear::{linear, Linear};
 use candle_nn::{Conv2dConfig, VarBuilder};
 
 fn conv3x3(vb: VarBuilder, i: usize, o: usize, stride: usize, padding: usize) -> Result<Conv2d> {

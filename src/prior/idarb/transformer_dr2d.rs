@@ -7,9 +7,9 @@
 use super::attention::{Attention, JointRows};
 use super::cape::apply_cape;
 use super::feed_forward::FeedForwardGeglu;
-use super::linear::{linear, Linear};
+use super::kernels::linear::{linear, Linear};
 use candle_core::{Module, Result, Tensor};
-use super::group_norm::{group_norm, GroupNorm};
+use super::kernels::group_norm::{group_norm, GroupNorm};
 use candle_nn::{layer_norm, LayerNorm, VarBuilder};
 
 /// LayerNorm eps of `norm1`, `norm_mv`, `norm2`, `norm3` (torch default).
