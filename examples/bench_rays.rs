@@ -5,8 +5,8 @@
 //! Coherent rays: 512² camera rays for 8 views (closest hit). Incoherent rays: from G-buffer hit
 //! points (offset along the normal) in uniformly random directions, like shadow / bounce rays
 //! (closest hit and any hit). Compares obvhs build presets for the CWBVH `Bvh` uses, its node
-//! tests (8-wide AVX2, `Bvh`'s default where the CPU has it, against obvhs' own SSE test), and
-//! obvhs' binary BVH2 with its own traversal as the alternative structure. All rayon-parallel.
+//! tests (AVX-512 and AVX2 8-wide where the CPU has them, `Bvh`'s default being the widest, against
+//! obvhs' own SSE test), and obvhs' binary BVH2 with its own traversal as the alternative structure. All rayon-parallel.
 
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
@@ -21,6 +21,7 @@ use rand::{Rng, SeedableRng};
 use rand_pcg::Pcg64;
 use rayon::prelude::*;
 use reconstruct::geometry::bvh::Bvh;
+use reconstruct::geometry::bvh_wide::NodeTest;
 use reconstruct::geometry::ground_truth::load_ground_truth;
 use reconstruct::geometry::Mesh;
 use reconstruct::render::gbuffer::GBuffer;
@@ -55,15 +56,22 @@ fn thread_cpu_ns() -> Option<u64> {
     std::fs::read_to_string("/proc/thread-self/schedstat").ok()?.split_whitespace().next()?.parse().ok()
 }
 
-/// Single-thread rays per CPU second for `f` over `rays` (best of 3).
-fn cpu_rate(rays: &[(Vec3, Vec3)], f: &dyn Fn(Vec3, Vec3) -> bool) -> Option<f64> {
-    let mut best: Option<f64> = None;
-    for _ in 0..3 {
-        let t0 = thread_cpu_ns()?;
-        std::hint::black_box(rays.iter().filter(|(o, d)| f(*o, *d)).count());
-        let ns = (thread_cpu_ns()? - t0).max(1);
-        let rate = rays.len() as f64 / (ns as f64 * 1e-9) / 1e6;
-        best = Some(best.map_or(rate, |b: f64| b.max(rate)));
+/// Passes over the rays per query in [`cpu_rates`]; the best pass counts.
+const ROUNDS: usize = 7;
+
+/// Single-thread rays per CPU second of each query `f(q, ..)`, q < `queries`, over `rays` (best of [`ROUNDS`] passes). The
+/// queries take turns within each round, so load that drifts during the run affects all alike and
+/// their ratios are measured side by side.
+fn cpu_rates(rays: &[(Vec3, Vec3)], queries: usize, f: &dyn Fn(usize, Vec3, Vec3) -> bool) -> Vec<Option<f64>> {
+    let mut best: Vec<Option<f64>> = vec![None; queries];
+    for _ in 0..ROUNDS {
+        for q in 0..queries {
+            let Some(t0) = thread_cpu_ns() else { return best };
+            std::hint::black_box(rays.iter().filter(|(o, d)| f(q, *o, *d)).count());
+            let Some(t1) = thread_cpu_ns() else { return best };
+            let rate = rays.len() as f64 / ((t1 - t0).max(1) as f64 * 1e-9) / 1e6;
+            best[q] = Some(best[q].map_or(rate, |b: f64| b.max(rate)));
+        }
     }
     best
 }
@@ -139,20 +147,19 @@ fn main() -> Result<()> {
             mrays(secondary.len(), any),
             hits as f64 / primary.len() as f64
         );
-        let node_test = if bvh.uses_wide_node_test() { "8-wide AVX2 node test" } else { "obvhs SSE node test" };
-        cpu_rows.push(format!(
-            "| CWBVH (Bvh), {node_test} | {name} | {} | {} | {} |",
-            fmt_rate(cpu_rate(coherent_subset, &|o, d| bvh.closest_hit(o, d, 0.0, f32::INFINITY).is_some())),
-            fmt_rate(cpu_rate(&secondary, &|o, d| bvh.closest_hit(o, d, 0.0, f32::INFINITY).is_some())),
-            fmt_rate(cpu_rate(&secondary, &|o, d| bvh.any_hit(o, d, 0.0, f32::INFINITY))),
-        ));
-        if bvh.uses_wide_node_test() {
-            // The same BVH with obvhs' own node test, measured right after, for the ratio.
+        // Every node test the CPU has, on the same BVH, taking turns (`cpu_rates`).
+        let tests: Vec<NodeTest> = [NodeTest::Avx512, NodeTest::Avx2, NodeTest::Obvhs].into_iter().filter(|t| t.supported()).collect();
+        let coherent = cpu_rates(coherent_subset, tests.len(), &|k, o, d| bvh.closest_hit_using(tests[k], o, d, 0.0, f32::INFINITY).is_some());
+        let incoherent = cpu_rates(&secondary, tests.len(), &|k, o, d| bvh.closest_hit_using(tests[k], o, d, 0.0, f32::INFINITY).is_some());
+        let occlusion = cpu_rates(&secondary, tests.len(), &|k, o, d| bvh.any_hit_using(tests[k], o, d, 0.0, f32::INFINITY));
+        for (k, test) in tests.iter().enumerate() {
             cpu_rows.push(format!(
-                "| CWBVH (Bvh), obvhs SSE node test | {name} | {} | {} | {} |",
-                fmt_rate(cpu_rate(coherent_subset, &|o, d| bvh.closest_hit_scalar(o, d, 0.0, f32::INFINITY).is_some())),
-                fmt_rate(cpu_rate(&secondary, &|o, d| bvh.closest_hit_scalar(o, d, 0.0, f32::INFINITY).is_some())),
-                fmt_rate(cpu_rate(&secondary, &|o, d| bvh.any_hit_scalar(o, d, 0.0, f32::INFINITY))),
+                "| CWBVH (Bvh), {} node test{} | {name} | {} | {} | {} |",
+                test.name(),
+                if *test == bvh.node_test() { " (default)" } else { "" },
+                fmt_rate(coherent[k]),
+                fmt_rate(incoherent[k]),
+                fmt_rate(occlusion[k]),
             ));
         }
     }
@@ -194,9 +201,9 @@ fn main() -> Result<()> {
     );
     cpu_rows.push(format!(
         "| BVH2 (obvhs traversal) | medium | {} | {} | {} |",
-        fmt_rate(cpu_rate(coherent_subset, &closest)),
-        fmt_rate(cpu_rate(&secondary, &closest)),
-        fmt_rate(cpu_rate(&secondary, &any)),
+        fmt_rate(cpu_rates(coherent_subset, 1, &|_, o, d| closest(o, d))[0]),
+        fmt_rate(cpu_rates(&secondary, 1, &|_, o, d| closest(o, d))[0]),
+        fmt_rate(cpu_rates(&secondary, 1, &|_, o, d| any(o, d))[0]),
     ));
     println!("\nOne thread, rays per CPU second (Mray/s; /proc/thread-self/schedstat):\n");
     println!("| structure | build preset | coherent closest | incoherent closest | incoherent any-hit |");

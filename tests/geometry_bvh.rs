@@ -5,6 +5,7 @@ use glam::{Vec2, Vec3};
 use rand::{Rng, SeedableRng};
 use rand_pcg::Pcg64;
 use reconstruct::geometry::bvh::{intersect_triangle, Bvh};
+use reconstruct::geometry::bvh_wide::NodeTest;
 use reconstruct::geometry::{Mesh, Part};
 
 fn random_unit(rng: &mut Pcg64) -> Vec3 {
@@ -143,17 +144,16 @@ fn rays_through_degenerate_triangles_stay_finite() {
     }
 }
 
-/// The node test `Bvh` picks at run time (8-wide AVX2 where available) returns the hits of obvhs'
-/// own test: same triangle, t within 1e-5 relative, same occlusion answers, on random rays, rays
-/// with ±0.0 components, rays running along triangle edges and through degenerate triangles.
+/// Every wide node test the CPU has (AVX2, AVX-512; `Bvh`'s default is one of them) returns the
+/// hits of obvhs' own test: same triangle, t within 1e-5 relative, same occlusion answers, on
+/// random rays, rays with ±0.0 components, rays running along triangle edges and through
+/// degenerate triangles.
 #[test]
-fn wide_node_test_returns_the_scalar_hits() {
+fn wide_node_tests_return_the_scalar_hits() {
     let mut rng = Pcg64::seed_from_u64(9);
     let (mesh, _) = random_mesh(&mut rng, 3000);
     let bvh = Bvh::build(&mesh);
-    if !bvh.uses_wide_node_test() {
-        eprintln!("no AVX2 here: closest_hit already is the scalar path");
-    }
+    assert_eq!(bvh.uses_wide_node_test(), NodeTest::Avx2.supported());
     let mut rays: Vec<(Vec3, Vec3, f32)> = Vec::new();
     for i in 0..6000 {
         let o = Vec3::new(rng.random_range(-1.5..1.5), rng.random_range(-1.5..1.5), rng.random_range(-1.5..1.5));
@@ -181,19 +181,25 @@ fn wide_node_test_returns_the_scalar_hits() {
             }
         }
     }
-    let mut hits = 0;
-    for (i, &(o, d, tmax)) in rays.iter().enumerate() {
-        let (got, want) = (bvh.closest_hit(o, d, 1e-4, tmax), bvh.closest_hit_scalar(o, d, 1e-4, tmax));
-        match (got, want) {
-            (None, None) => {}
-            (Some(g), Some(w)) => {
-                hits += 1;
-                assert_eq!(g.triangle, w.triangle, "ray {i}: {g:?} vs {w:?}");
-                assert!((g.t - w.t).abs() <= 1e-5 * w.t.abs(), "ray {i}: t {} vs {}", g.t, w.t);
-            }
-            (g, w) => panic!("ray {i}: wide {g:?}, scalar {w:?}"),
-        }
-        assert_eq!(bvh.any_hit(o, d, 1e-4, tmax), bvh.any_hit_scalar(o, d, 1e-4, tmax), "ray {i}: any_hit differs");
+    let tests: Vec<NodeTest> = [NodeTest::Avx2, NodeTest::Avx512].into_iter().filter(|t| t.supported()).collect();
+    if tests.is_empty() {
+        eprintln!("no AVX2 here: every query already takes the scalar path");
     }
-    assert!(hits > rays.len() / 5 && hits < rays.len(), "{hits} hits of {} rays", rays.len());
+    for test in tests {
+        let mut hits = 0;
+        for (i, &(o, d, tmax)) in rays.iter().enumerate() {
+            let (got, want) = (bvh.closest_hit_using(test, o, d, 1e-4, tmax), bvh.closest_hit_scalar(o, d, 1e-4, tmax));
+            match (got, want) {
+                (None, None) => {}
+                (Some(g), Some(w)) => {
+                    hits += 1;
+                    assert_eq!(g.triangle, w.triangle, "{test:?}, ray {i}: {g:?} vs {w:?}");
+                    assert!((g.t - w.t).abs() <= 1e-5 * w.t.abs(), "{test:?}, ray {i}: t {} vs {}", g.t, w.t);
+                }
+                (g, w) => panic!("{test:?}, ray {i}: wide {g:?}, scalar {w:?}"),
+            }
+            assert_eq!(bvh.any_hit_using(test, o, d, 1e-4, tmax), bvh.any_hit_scalar(o, d, 1e-4, tmax), "{test:?}, ray {i}: any_hit differs");
+        }
+        assert!(hits > rays.len() / 5 && hits < rays.len(), "{hits} hits of {} rays", rays.len());
+    }
 }

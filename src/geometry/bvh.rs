@@ -4,9 +4,11 @@
 //! triangles already permuted into that order (so the hot loop reads memory linearly) together
 //! with their index in the mesh's triangle list, which is what [`Hit::triangle`] returns.
 //!
-//! Node tests: on CPUs with AVX2 the traversal tests a node's 8 children in one pass
-//! ([`super::bvh_wide`]); elsewhere it uses obvhs' SSE test. Both give the same hit masks, so the
-//! hits are identical; `closest_hit_scalar` / `any_hit_scalar` keep obvhs' test for comparison.
+//! Node tests: the traversal tests a node's 8 children in one pass with AVX2 where the CPU has it
+//! ([`super::bvh_wide`], picked at build time); elsewhere it uses obvhs' SSE test. An AVX-512 test
+//! exists too (measured slower, not the default).
+//! All give the same hit masks, so the hits are identical; `closest_hit_using` / `any_hit_using`
+//! pick a test explicitly (benchmarks, and the tests comparing them).
 
 use std::time::Duration;
 
@@ -18,7 +20,8 @@ use obvhs::ray::Ray;
 use obvhs::triangle::Triangle;
 use obvhs::BvhBuildParams;
 
-use super::{bvh_wide, Mesh};
+use super::bvh_wide::{self, NodeTest};
+use super::Mesh;
 
 /// A ray/triangle intersection.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -31,12 +34,15 @@ pub struct Hit {
     pub bary: Vec2,
 }
 
-/// A triangle in the form the intersection test wants: one vertex and two edges.
+/// A triangle in the form the intersection test wants: one vertex and two edges, 9 floats with no
+/// padding (36 bytes, against 48 as three 16-byte vectors), stored in the leaves' order so that a
+/// node's leaf triangles are one contiguous walk of at most 24 × 36 bytes.
 #[derive(Clone, Copy, Debug)]
+#[repr(C)]
 struct PackedTriangle {
-    v0: Vec3A,
-    e1: Vec3A,
-    e2: Vec3A,
+    v0: Vec3,
+    e1: Vec3,
+    e2: Vec3,
 }
 
 /// Möller–Trumbore ray/triangle test for the triangle (p0, p1, p2). Returns (t, b1, b2) for a hit
@@ -44,24 +50,25 @@ struct PackedTriangle {
 /// or the barycentric test fails, so no NaN can escape.
 #[inline(always)]
 fn intersect_packed(tri: &PackedTriangle, origin: Vec3A, dir: Vec3A, tmin: f32, tmax: f32) -> Option<(f32, f32, f32)> {
-    let p = dir.cross(tri.e2);
-    let det = tri.e1.dot(p);
+    let (v0, e1, e2) = (Vec3A::from(tri.v0), Vec3A::from(tri.e1), Vec3A::from(tri.e2));
+    let p = dir.cross(e2);
+    let det = e1.dot(p);
     // `!(det != 0)` also rejects NaN.
     if det == 0.0 || det.is_nan() {
         return None;
     }
     let inv_det = 1.0 / det;
-    let s = origin - tri.v0;
+    let s = origin - v0;
     let b1 = s.dot(p) * inv_det;
     if !(0.0..=1.0).contains(&b1) {
         return None;
     }
-    let q = s.cross(tri.e1);
+    let q = s.cross(e1);
     let b2 = dir.dot(q) * inv_det;
     if !(b2 >= 0.0 && b1 + b2 <= 1.0) {
         return None;
     }
-    let t = tri.e2.dot(q) * inv_det;
+    let t = e2.dot(q) * inv_det;
     if t >= tmin && t <= tmax && t.is_finite() {
         Some((t, b1, b2))
     } else {
@@ -71,7 +78,8 @@ fn intersect_packed(tri: &PackedTriangle, origin: Vec3A, dir: Vec3A, tmin: f32, 
 
 /// The same test on three points, for brute-force references and one-off queries.
 pub fn intersect_triangle(p: [Vec3; 3], origin: Vec3, dir: Vec3, tmin: f32, tmax: f32) -> Option<(f32, Vec2)> {
-    let tri = PackedTriangle { v0: p[0].into(), e1: (p[1] - p[0]).into(), e2: (p[2] - p[0]).into() };
+    let (a, b, c) = (Vec3A::from(p[0]), Vec3A::from(p[1]), Vec3A::from(p[2]));
+    let tri = PackedTriangle { v0: a.into(), e1: (b - a).into(), e2: (c - a).into() };
     intersect_packed(&tri, origin.into(), dir.into(), tmin, tmax).map(|(t, b1, b2)| (t, Vec2::new(b1, b2)))
 }
 
@@ -90,8 +98,8 @@ pub struct Bvh {
     triangles: Vec<PackedTriangle>,
     /// Mesh triangle index of each entry of `triangles`.
     triangle_ids: Vec<u32>,
-    /// Test nodes 8 children wide (AVX2 detected at build time).
-    wide: bool,
+    /// The node test queries use ([`NodeTest::detect`] at build time).
+    node_test: NodeTest,
 }
 
 /// Closest-hit traversal with the node test `$test(node, &ray, oct_inv4)`: (primitive slot, t, b1, b2).
@@ -150,7 +158,7 @@ impl Bvh {
             }
         }
         if tris.is_empty() {
-            return Bvh { cwbvh: None, triangles: Vec::new(), triangle_ids: Vec::new(), wide: false };
+            return Bvh { cwbvh: None, triangles: Vec::new(), triangle_ids: Vec::new(), node_test: NodeTest::Obvhs };
         }
         let cwbvh = build_cwbvh_from_tris(&tris, params, &mut Duration::default());
         let triangles = cwbvh
@@ -158,16 +166,21 @@ impl Bvh {
             .iter()
             .map(|&i| {
                 let t = &tris[i as usize];
-                PackedTriangle { v0: t.v0, e1: t.v1 - t.v0, e2: t.v2 - t.v0 }
+                PackedTriangle { v0: t.v0.into(), e1: (t.v1 - t.v0).into(), e2: (t.v2 - t.v0).into() }
             })
             .collect();
         let triangle_ids = cwbvh.primitive_indices.iter().map(|&i| ids[i as usize]).collect();
-        Bvh { cwbvh: Some(cwbvh), triangles, triangle_ids, wide: bvh_wide::available() }
+        Bvh { cwbvh: Some(cwbvh), triangles, triangle_ids, node_test: NodeTest::detect() }
     }
 
-    /// Whether queries test nodes 8 children wide (AVX2) rather than with obvhs' SSE test.
+    /// The node test queries use.
+    pub fn node_test(&self) -> NodeTest {
+        self.node_test
+    }
+
+    /// Whether queries test nodes 8 children wide (AVX2 or AVX-512) rather than with obvhs' SSE test.
     pub fn uses_wide_node_test(&self) -> bool {
-        self.wide
+        self.node_test != NodeTest::Obvhs
     }
 
     /// Number of (non-degenerate) triangles referenced by the leaves.
@@ -177,75 +190,83 @@ impl Bvh {
 
     /// The nearest hit with t in [tmin, tmax] along `origin + t·dir` (dir need not be unit).
     pub fn closest_hit(&self, origin: Vec3, dir: Vec3, tmin: f32, tmax: f32) -> Option<Hit> {
-        self.closest_hit_impl(origin, dir, tmin, tmax, self.wide)
+        self.closest_hit_using(self.node_test, origin, dir, tmin, tmax)
     }
 
-    /// [`Self::closest_hit`] with obvhs' own node test (the reference the wide test must match).
+    /// [`Self::closest_hit`] with obvhs' own node test (the reference the wide tests must match).
     pub fn closest_hit_scalar(&self, origin: Vec3, dir: Vec3, tmin: f32, tmax: f32) -> Option<Hit> {
-        self.closest_hit_impl(origin, dir, tmin, tmax, false)
+        self.closest_hit_using(NodeTest::Obvhs, origin, dir, tmin, tmax)
     }
 
     /// Whether anything lies on the segment t in [tmin, tmax] (occlusion; stops at the first hit).
     pub fn any_hit(&self, origin: Vec3, dir: Vec3, tmin: f32, tmax: f32) -> bool {
-        self.any_hit_impl(origin, dir, tmin, tmax, self.wide)
+        self.any_hit_using(self.node_test, origin, dir, tmin, tmax)
     }
 
     /// [`Self::any_hit`] with obvhs' own node test.
     pub fn any_hit_scalar(&self, origin: Vec3, dir: Vec3, tmin: f32, tmax: f32) -> bool {
-        self.any_hit_impl(origin, dir, tmin, tmax, false)
+        self.any_hit_using(NodeTest::Obvhs, origin, dir, tmin, tmax)
     }
 
-    fn closest_hit_impl(&self, origin: Vec3, dir: Vec3, tmin: f32, tmax: f32, wide: bool) -> Option<Hit> {
+    /// [`Self::closest_hit`] with the given node test (a narrower one where the CPU lacks its instructions).
+    pub fn closest_hit_using(&self, test: NodeTest, origin: Vec3, dir: Vec3, tmin: f32, tmax: f32) -> Option<Hit> {
         let bvh = self.cwbvh.as_ref()?;
         if !(origin.is_finite() && dir.is_finite()) || dir == Vec3::ZERO {
             return None;
         }
         let (o, d) = (Vec3A::from(origin), positive_zeros(dir));
-        let best = if wide { self.closest_wide(bvh, o, d, tmin, tmax) } else { closest_traversal!(self, bvh, o, d, tmin, tmax, CwBvhNode::intersect_ray) };
+        let best = match test {
+            #[cfg(target_arch = "x86_64")]
+            NodeTest::Avx512 if test.supported() => {
+                #[target_feature(enable = "avx2,avx512f,avx512vl,avx512bw")]
+                fn run(this: &Bvh, bvh: &CwBvh, o: Vec3A, d: Vec3A, tmin: f32, tmax: f32) -> Option<(u32, f32, f32, f32)> {
+                    closest_traversal!(this, bvh, o, d, tmin, tmax, bvh_wide::intersect_node_avx512)
+                }
+                // SAFETY: the CPU has AVX-512 F/VL/BW and AVX2 (checked just above).
+                unsafe { run(self, bvh, o, d, tmin, tmax) }
+            }
+            #[cfg(target_arch = "x86_64")]
+            NodeTest::Avx2 | NodeTest::Avx512 if NodeTest::Avx2.supported() => {
+                #[target_feature(enable = "avx2")]
+                fn run(this: &Bvh, bvh: &CwBvh, o: Vec3A, d: Vec3A, tmin: f32, tmax: f32) -> Option<(u32, f32, f32, f32)> {
+                    closest_traversal!(this, bvh, o, d, tmin, tmax, bvh_wide::intersect_node)
+                }
+                // SAFETY: the CPU has AVX2 (checked just above).
+                unsafe { run(self, bvh, o, d, tmin, tmax) }
+            }
+            _ => closest_traversal!(self, bvh, o, d, tmin, tmax, CwBvhNode::intersect_ray),
+        };
         best.map(|(k, t, b1, b2)| Hit { triangle: self.triangle_ids[k as usize], t, bary: Vec2::new(b1, b2) })
     }
 
-    fn any_hit_impl(&self, origin: Vec3, dir: Vec3, tmin: f32, tmax: f32, wide: bool) -> bool {
+    /// [`Self::any_hit`] with the given node test (a narrower one where the CPU lacks its instructions).
+    pub fn any_hit_using(&self, test: NodeTest, origin: Vec3, dir: Vec3, tmin: f32, tmax: f32) -> bool {
         let Some(bvh) = self.cwbvh.as_ref() else { return false };
         if !(origin.is_finite() && dir.is_finite()) || dir == Vec3::ZERO {
             return false;
         }
         let (o, d) = (Vec3A::from(origin), positive_zeros(dir));
-        if wide {
-            self.any_wide(bvh, o, d, tmin, tmax)
-        } else {
-            any_traversal!(self, bvh, o, d, tmin, tmax, CwBvhNode::intersect_ray)
-        }
-    }
-
-    /// Only called when `self.wide`, i.e. AVX2 was detected.
-    fn closest_wide(&self, bvh: &CwBvh, o: Vec3A, d: Vec3A, tmin: f32, tmax: f32) -> Option<(u32, f32, f32, f32)> {
-        #[cfg(target_arch = "x86_64")]
-        {
-            #[target_feature(enable = "avx2")]
-            fn run(this: &Bvh, bvh: &CwBvh, o: Vec3A, d: Vec3A, tmin: f32, tmax: f32) -> Option<(u32, f32, f32, f32)> {
-                closest_traversal!(this, bvh, o, d, tmin, tmax, bvh_wide::intersect_node)
+        match test {
+            #[cfg(target_arch = "x86_64")]
+            NodeTest::Avx512 if test.supported() => {
+                #[target_feature(enable = "avx2,avx512f,avx512vl,avx512bw")]
+                fn run(this: &Bvh, bvh: &CwBvh, o: Vec3A, d: Vec3A, tmin: f32, tmax: f32) -> bool {
+                    any_traversal!(this, bvh, o, d, tmin, tmax, bvh_wide::intersect_node_avx512)
+                }
+                // SAFETY: the CPU has AVX-512 F/VL/BW and AVX2 (checked just above).
+                unsafe { run(self, bvh, o, d, tmin, tmax) }
             }
-            // SAFETY: `wide` is set only where `bvh_wide::available()` found AVX2.
-            unsafe { run(self, bvh, o, d, tmin, tmax) }
-        }
-        #[cfg(not(target_arch = "x86_64"))]
-        closest_traversal!(self, bvh, o, d, tmin, tmax, CwBvhNode::intersect_ray)
-    }
-
-    /// Only called when `self.wide`, i.e. AVX2 was detected.
-    fn any_wide(&self, bvh: &CwBvh, o: Vec3A, d: Vec3A, tmin: f32, tmax: f32) -> bool {
-        #[cfg(target_arch = "x86_64")]
-        {
-            #[target_feature(enable = "avx2")]
-            fn run(this: &Bvh, bvh: &CwBvh, o: Vec3A, d: Vec3A, tmin: f32, tmax: f32) -> bool {
-                any_traversal!(this, bvh, o, d, tmin, tmax, bvh_wide::intersect_node)
+            #[cfg(target_arch = "x86_64")]
+            NodeTest::Avx2 | NodeTest::Avx512 if NodeTest::Avx2.supported() => {
+                #[target_feature(enable = "avx2")]
+                fn run(this: &Bvh, bvh: &CwBvh, o: Vec3A, d: Vec3A, tmin: f32, tmax: f32) -> bool {
+                    any_traversal!(this, bvh, o, d, tmin, tmax, bvh_wide::intersect_node)
+                }
+                // SAFETY: the CPU has AVX2 (checked just above).
+                unsafe { run(self, bvh, o, d, tmin, tmax) }
             }
-            // SAFETY: `wide` is set only where `bvh_wide::available()` found AVX2.
-            unsafe { run(self, bvh, o, d, tmin, tmax) }
+            _ => any_traversal!(self, bvh, o, d, tmin, tmax, CwBvhNode::intersect_ray),
         }
-        #[cfg(not(target_arch = "x86_64"))]
-        any_traversal!(self, bvh, o, d, tmin, tmax, CwBvhNode::intersect_ray)
     }
 }
 
