@@ -32,6 +32,15 @@ struct Args {
     /// Geometry-pass iterations (default: the pass's default).
     #[arg(long)]
     iterations: Option<usize>,
+    /// Weight of the per-vertex colour smoothness (default: the pass's default).
+    #[arg(long)]
+    kd_smoothness: Option<f64>,
+    /// Position step per edge (default: the pass's default).
+    #[arg(long)]
+    step_per_edge: Option<f64>,
+    /// Large Steps λ (default: the pass's default).
+    #[arg(long)]
+    lambda: Option<f64>,
     /// Write the reconstructed mesh (OBJ) here.
     #[arg(long)]
     save: Option<std::path::PathBuf>,
@@ -53,6 +62,15 @@ fn main() -> Result<()> {
     let mut pass = GeometryPassConfig::default();
     if let Some(n) = args.iterations {
         pass.iterations = n;
+    }
+    if let Some(w) = args.kd_smoothness {
+        pass.kd_smoothness = w;
+    }
+    if let Some(w) = args.step_per_edge {
+        pass.step_per_edge = w;
+    }
+    if let Some(l) = args.lambda {
+        pass.lambda = l;
     }
     let t = Instant::now();
     let outcome = obtain_geometry(&spec, &dataset, GeometrySource::Reconstruct, &pass, !args.json)?;

@@ -38,8 +38,10 @@ use crate::geometry::remesh::isotropic_remesh;
 use crate::geometry::Mesh;
 use crate::image::Image;
 use crate::optim::adam::{Adam, GroupConfig, LrSchedule};
-use crate::optim::large_steps::{LargeSteps, UniformAdam, DEFAULT_LAMBDA};
+use crate::optim::large_steps::{LargeSteps, UniformAdam};
 use crate::optim::loss::log_srgb;
+use crate::optim::laplacian::UniformLaplacian;
+use crate::optim::vertex_smoothness::VertexSmoothness;
 use crate::render::gbuffer::GBuffer;
 use crate::render::sh_light::{constant_light, shade_diffuse, SH_COEFFICIENTS};
 use crate::render::silhouette_op::{antialias, EdgeTopology, Silhouettes};
@@ -66,6 +68,9 @@ pub struct GeometryPassConfig {
     pub lr_light: f64,
     /// Weight of the coverage MSE beside the colour L1 (NVDiffRecMC adds them with weight 1).
     pub mask_weight: f64,
+    /// Weight of the per-vertex colour's smoothness (`optim::vertex_smoothness`: mean over edges
+    /// of |kd_a − kd_b|) beside the image loss; 0 switches it off.
+    pub kd_smoothness: f64,
     /// The pass runs in this many stages of equal length; before each stage after the first the
     /// mesh is remeshed isotropically to a finer edge (`geometry::remesh`), so the first stage
     /// moves a coarse mesh far and the later ones resolve detail. 1 keeps the start's connectivity.
@@ -84,7 +89,7 @@ impl Default for GeometryPassConfig {
             // coarse stage needs a few hundred steps to settle before refining pays.
             iterations: 1500,
             batch: 4,
-            lambda: DEFAULT_LAMBDA,
+            lambda: GEOMETRY_LAMBDA,
             // Uniform Adam normalises by the largest second moment, so most vertices move a small
             // share of this, and (I + λL)⁻¹ damps all but the smoothest modes. Measured on
             // tests/geometry_pass.rs (Chamfer reduction after 200 steps): 0.3 → 1.35×, 1 → 2.75×,
@@ -94,6 +99,7 @@ impl Default for GeometryPassConfig {
             lr_material: 0.03,
             lr_light: 0.03,
             mask_weight: 1.0,
+            kd_smoothness: KD_SMOOTHNESS,
             // Measured on the hotdog and the default scene (docs/geometry.md): see there.
             stages: 3,
             // An edge of 1.5 pixels: finer triangles than that cover too few pixel centres to get a
@@ -290,6 +296,7 @@ struct StageState {
     template: Mesh,
     triangles: Arc<[[u32; 3]]>,
     topology: EdgeTopology,
+    kd_reg: VertexSmoothness,
     ls: LargeSteps,
     x: Vec<[f64; 3]>,
     u: Vec<[f64; 3]>,
@@ -305,6 +312,7 @@ impl StageState {
     fn new(template: Mesh, vertex_kd: &[Vec3], light: &Var, config: &GeometryPassConfig, schedule: LrSchedule, step: usize) -> Result<StageState> {
         let triangles: Arc<[[u32; 3]]> = template.triangles.clone().into();
         let topology = EdgeTopology::new(&triangles);
+        let kd_reg = VertexSmoothness::new(&UniformLaplacian::new(template.positions.len(), &triangles).context("geometry pass")?)?;
         let ls = LargeSteps::new(template.positions.len(), &triangles, config.lambda).context("geometry pass")?;
         let x: Vec<[f64; 3]> = template.positions.iter().map(|p| p.as_dvec3().to_array()).collect();
         let u = ls.to_u(&x);
@@ -318,7 +326,7 @@ impl StageState {
         let mut adam = Adam::new(schedule).starting_at(step);
         adam.add_group(GroupConfig::new("vertex kd", config.lr_material).with_clamp(0.0, 1.0), vec![kd.clone()])?;
         adam.add_group(GroupConfig::new("sh light", config.lr_light), vec![light.clone()])?;
-        Ok(StageState { template, triangles, topology, ls, x, u, pos_adam, min_area2, kd, adam })
+        Ok(StageState { template, triangles, topology, kd_reg, ls, x, u, pos_adam, min_area2, kd, adam })
     }
 
     fn mesh(&self) -> Mesh {
@@ -408,6 +416,19 @@ fn barycentric(a: Vec3, b: Vec3, c: Vec3, p: Vec3) -> Vec2 {
     let b2 = ((d11 * d2 - d12 * d1) / det).clamp(0.0, 1.0 - b1);
     Vec2::new(b1, b2)
 }
+
+/// The per-vertex colour's smoothness weight: the material pass's kd smoothness weight
+/// (`optim::weights`, NVDiffRecMC's λ_kd = 0.1), the neighbour one edge away instead of a
+/// jittered lookup. Measured on the default scene (docs/geometry.md): 0.1 lowers Chamfer and the
+/// normal error, 1 holds the colour too flat to follow the albedo's real edges.
+const KD_SMOOTHNESS: f64 = 0.1;
+
+/// λ of Large Steps' (I + λL) in the pass. An update spreads over about √λ vertex rings
+/// (`optim::large_steps`); at the last stage's edge of 1.5 pixels the paper's default 19 spreads
+/// it over some 6 pixels, wider than the details the shading must grow inside the outline (a
+/// bun's crease, a blob of sauce on a plate), which then never form. λ = 5 spreads it over about
+/// 3 pixels. Measured on the default scene and the hotdog (docs/geometry.md).
+const GEOMETRY_LAMBDA: f64 = 5.0;
 
 /// Rounds of the remesher between stages: the remesher's own default, as for the hull.
 const REMESH_ROUNDS: u16 = 10;
@@ -525,7 +546,10 @@ pub fn run_geometry_pass(start: &Mesh, views: &[GeometryView], config: &Geometry
             losses.push(r.loss);
             mask_mse += r.mask_mse / batch.len() as f64;
         }
-        let loss = (Tensor::stack(&losses, 0)?.sum_all()? / batch.len() as f64)?;
+        let mut loss = (Tensor::stack(&losses, 0)?.sum_all()? / batch.len() as f64)?;
+        if config.kd_smoothness > 0.0 {
+            loss = (loss + (state.kd_reg.apply(state.kd.as_tensor())? * config.kd_smoothness)?)?;
+        }
         let loss_value = loss.to_scalar::<f32>()? as f64;
         if !loss_value.is_finite() {
             bail!("geometry pass: the loss became non-finite at iteration {it}");

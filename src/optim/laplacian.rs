@@ -58,6 +58,13 @@ impl UniformLaplacian {
         self.offsets.len() - 1
     }
 
+    /// Every edge once, as (a, b) with a < b.
+    pub fn edges(&self) -> Vec<[u32; 2]> {
+        (0..self.vertex_count())
+            .flat_map(|a| self.neighbours[self.offsets[a]..self.offsets[a + 1]].iter().filter(move |&&b| b as usize > a).map(move |&b| [a as u32, b]))
+            .collect()
+    }
+
     #[inline]
     fn neighbours_of(&self, i: usize) -> &[u32] {
         &self.neighbours[self.offsets[i]..self.offsets[i + 1]]

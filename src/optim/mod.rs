@@ -16,6 +16,7 @@ pub mod smoothness;
 pub mod srgb;
 pub mod tape;
 pub mod texture;
+pub mod vertex_smoothness;
 pub mod weights;
 
 pub use adam::{Adam, GroupConfig, LrSchedule};
