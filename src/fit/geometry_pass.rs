@@ -12,7 +12,8 @@
 //!    let the colour hide a wrong outline) with coverage as a fourth channel, and the silhouettes
 //!    are antialiased analytically (`silhouette_op`), which gives the outline its gradient;
 //! 4. loss: L1 of the tone-mapped colour (`optim::loss::log_srgb`) against the target composited
-//!    over the same background, plus the MSE of the coverage against the target alpha;
+//!    over the same background, plus the MSE of the coverage against the target alpha, as one
+//!    operator over the image (`view_loss_op`);
 //! 5. the position gradient goes through the Large Steps parameterisation (`optim::large_steps`):
 //!    a uniform-Adam step on u = (I + λL)x, then x = (I + λL)⁻¹u. kd and light take Adam steps.
 //!
