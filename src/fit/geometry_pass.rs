@@ -555,14 +555,12 @@ pub fn run_geometry_pass(start: &Mesh, views: &[GeometryView], config: &Geometry
             bail!("geometry pass: non-finite position gradient at iteration {it}");
         }
         let du = state.pos_adam.step(&state.ls.solve(&g_x), lr_factor);
-        // x = (I + λL)⁻¹u is linear in u: one solve gives the move for every trial share.
-        let dx = state.ls.solve(&du);
         let (mut share, mut accepted, mut broken) = (1.0, None, 0);
         for _ in 0..9 {
-            let x_new: Vec<[f64; 3]> = state.x.iter().zip(&dx).map(|(a, d)| std::array::from_fn(|k| a[k] + share * d[k])).collect();
+            let u_new: Vec<[f64; 3]> = state.u.iter().zip(&du).map(|(a, d)| std::array::from_fn(|k| a[k] + share * d[k])).collect();
+            let x_new = state.ls.solve(&u_new);
             broken = broken_triangles(&state.triangles, &state.x, &x_new, state.min_area2);
             if broken == 0 {
-                let u_new: Vec<[f64; 3]> = state.u.iter().zip(&du).map(|(a, d)| std::array::from_fn(|k| a[k] + share * d[k])).collect();
                 accepted = Some((u_new, x_new));
                 break;
             }
