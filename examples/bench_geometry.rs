@@ -47,6 +47,9 @@ struct Args {
     /// Print one JSON object instead of tables.
     #[arg(long)]
     json: bool,
+    /// Write every step's loss here, one per line (for comparing runs step by step).
+    #[arg(long)]
+    losses: Option<std::path::PathBuf>,
 }
 
 fn main() -> Result<()> {
@@ -80,8 +83,12 @@ fn main() -> Result<()> {
     if let Some(path) = &args.save {
         reconstruct::geometry::obj::write_obj(path, &outcome.mesh, &[])?;
     }
-    let hull = outcome.report.hull.as_ref().expect("reconstruction records its hull");
     let p = outcome.report.pass.as_ref().expect("reconstruction records its pass");
+    if let Some(path) = &args.losses {
+        let lines: String = p.history.iter().map(|h| format!("{} {:e} {:e} {}\n", h.iteration, h.loss, h.mask_mse, h.step_taken)).collect();
+        std::fs::write(path, lines)?;
+    }
+    let hull = outcome.report.hull.as_ref().expect("reconstruction records its hull");
     let steps = p.history.len().max(1) as f64;
     let per_step = |s: f64| 1e3 * s / steps;
     let split = [

@@ -12,7 +12,8 @@
 //!    let the colour hide a wrong outline) with coverage as a fourth channel, and the silhouettes
 //!    are antialiased analytically (`silhouette_op`), which gives the outline its gradient;
 //! 4. loss: L1 of the tone-mapped colour (`optim::loss::log_srgb`) against the target composited
-//!    over the same background, plus the MSE of the coverage against the target alpha;
+//!    over the same background, plus the MSE of the coverage against the target alpha, as one
+//!    operator over the image (`view_loss_op`);
 //! 5. the position gradient goes through the Large Steps parameterisation (`optim::large_steps`):
 //!    a uniform-Adam step on u = (I + λL)x, then x = (I + λL)⁻¹u. kd and light take Adam steps.
 //!
@@ -39,7 +40,6 @@ use crate::geometry::Mesh;
 use crate::image::Image;
 use crate::optim::adam::{Adam, GroupConfig, LrSchedule};
 use crate::optim::large_steps::{LargeSteps, UniformAdam};
-use crate::optim::loss::log_srgb;
 use crate::optim::laplacian::UniformLaplacian;
 use crate::optim::vertex_smoothness::VertexSmoothness;
 use crate::render::gbuffer::GBuffer;
@@ -52,6 +52,7 @@ use crate::scene::camera::median_pixel_footprint;
 use crate::scene::Camera;
 
 use super::pixel_scatter::PixelMap;
+use super::view_loss_op::{view_loss, ViewLoss};
 
 #[derive(Clone, Debug, PartialEq, Serialize, serde::Deserialize)]
 pub struct GeometryPassConfig {
@@ -168,8 +169,8 @@ pub struct GeometryPassResult {
 struct ViewTarget {
     camera: Camera,
     /// Linear RGB and alpha, row-major.
-    rgb: Vec<[f32; 3]>,
-    alpha: Vec<f32>,
+    rgb: Arc<[[f32; 3]]>,
+    alpha: Arc<[f32]>,
 }
 
 fn to_vec3(v: &[f64; 3]) -> Vec3 {
@@ -254,36 +255,21 @@ fn render_view_loss(
     }
     let n = pixels.len();
     let dev = &Device::Cpu;
-    // Background colour with zero coverage everywhere; covered pixels get (colour, 1) added.
-    let mut bg = vec![0.0f32; 4 * w * h];
-    for p in bg.chunks_exact_mut(4) {
-        p[..3].copy_from_slice(&background.to_array());
-    }
-    for &p in &pixels {
-        bg[4 * p as usize..4 * p as usize + 4].fill(0.0);
-    }
-    let mut image = Tensor::from_vec(bg, (w * h, 4), dev)?;
-    if n > 0 {
+    let map = PixelMap { pixels: pixels.into(), width: w, height: h };
+    let rgb = if n > 0 {
         let sp = surface_points(SurfacePoints { rays: rays.into(), triangles: triangles.clone() }, positions, normals, kd)?;
         let normal = sp.narrow(D::Minus1, 0, 3)?;
         let kd_px = sp.narrow(D::Minus1, 3, 3)?;
-        let rgb = shade_diffuse(&kd_px, &normal, light)?;
-        let rows = Tensor::cat(&[rgb, Tensor::ones((n, 1), DType::F32, dev)?], D::Minus1)?;
-        let map = PixelMap { pixels: pixels.into(), width: w, height: h };
-        image = (image + map.scatter(&rows)?.reshape((w * h, 4))?)?;
-    }
+        shade_diffuse(&kd_px, &normal, light)?
+    } else {
+        Tensor::zeros((0, 3), DType::F32, dev)?
+    };
+    // Colour over the background, coverage as the fourth channel.
+    let image = map.composite(&rgb, &background.to_array())?;
     let aa = antialias(Silhouettes::new(cam, &gbuf, triangles.clone(), topology.clone()), &image, positions)?;
-    // The target over the same background.
-    let target_rgb: Vec<f32> = view
-        .rgb
-        .iter()
-        .zip(&view.alpha)
-        .flat_map(|(c, &a)| [0, 1, 2].map(|k| c[k] * a + background[k] * (1.0 - a)))
-        .collect();
-    let target_rgb = Tensor::from_vec(target_rgb, (w * h, 3), dev)?;
-    let target_a = Tensor::from_vec(view.alpha.clone(), (w * h, 1), dev)?;
-    let colour = (log_srgb(&aa.narrow(D::Minus1, 0, 3)?)? - log_srgb(&target_rgb)?)?.abs()?.mean_all()?;
-    let mask = (aa.narrow(D::Minus1, 3, 1)? - target_a)?.sqr()?.mean_all()?;
+    // L1 of the tone-mapped colour against the target over the same background, coverage MSE.
+    let terms = view_loss(ViewLoss { rgb: view.rgb.clone(), alpha: view.alpha.clone(), background }, &aa)?;
+    let (colour, mask) = (terms.get(0)?, terms.get(1)?);
     let mask_mse = mask.to_scalar::<f32>()? as f64;
     let loss = (colour + (mask * mask_weight)?)?;
     timings.shading += t.elapsed().as_secs_f64();

@@ -16,4 +16,5 @@ pub mod parameters;
 pub mod pixel_scatter;
 pub mod settings_diff;
 pub mod training_view;
+pub mod view_loss_op;
 pub mod view_screening;

@@ -105,9 +105,11 @@ pub struct Silhouettes {
     height: usize,
     projection: Projection,
     triangle_of: Arc<[u32]>,
-    depth: Arc<[f32]>,
     triangles: Arc<[[u32; 3]]>,
     topology: EdgeTopology,
+    /// The adjacent pixel pairs whose triangle ids differ, as (front, back, horizontal), in
+    /// row-major order of the first pixel: fixed with the G-buffer, so found once, not per pass.
+    pairs: Arc<[(u32, u32, bool)]>,
 }
 
 /// One pixel pair's blend: `to` receives w·(c_from − c_to); `s_sign` = ±1 is ∂w/∂s.
@@ -125,38 +127,35 @@ impl Silhouettes {
     pub fn new(camera: &Camera, gbuffer: &GBuffer, triangles: Arc<[[u32; 3]]>, topology: EdgeTopology) -> Self {
         let triangle_of: Vec<u32> = gbuffer.surfels.iter().map(|s| s.map_or(NONE, |s| s.triangle)).collect();
         let depth: Vec<f32> = gbuffer.surfels.iter().map(|s| s.map_or(f32::INFINITY, |s| s.depth)).collect();
+        let (w, h) = (gbuffer.width, gbuffer.height);
+        let mut pairs = Vec::new();
+        for y in 0..h {
+            for x in 0..w {
+                let a = y * w + x;
+                for (b, horizontal) in [(x + 1 < w).then(|| (a + 1, true)), (y + 1 < h).then(|| (a + w, false))].into_iter().flatten() {
+                    if triangle_of[a] == triangle_of[b] {
+                        continue;
+                    }
+                    let (front, back) = if depth[a] <= depth[b] { (a, b) } else { (b, a) };
+                    pairs.push((front as u32, back as u32, horizontal));
+                }
+            }
+        }
         Silhouettes {
             width: gbuffer.width,
             height: gbuffer.height,
             projection: Projection::new(camera),
             triangle_of: triangle_of.into(),
-            depth: depth.into(),
             triangles,
             topology,
+            pairs: pairs.into(),
         }
     }
 
     /// The blends of every adjacent pixel pair at the current positions.
     fn blends<T: Real>(&self, positions: &[T]) -> Vec<Blend> {
         let p = |i: usize| DVec3::new(positions[3 * i].to_f64(), positions[3 * i + 1].to_f64(), positions[3 * i + 2].to_f64());
-        let mut out = Vec::new();
-        let (w, h) = (self.width, self.height);
-        for y in 0..h {
-            for x in 0..w {
-                let a = y * w + x;
-                for (b, horizontal) in [(x + 1 < w).then(|| (a + 1, true)), (y + 1 < h).then(|| (a + w, false))].into_iter().flatten() {
-                    let (ta, tb) = (self.triangle_of[a], self.triangle_of[b]);
-                    if ta == tb {
-                        continue;
-                    }
-                    let (front, back) = if self.depth[a] <= self.depth[b] { (a, b) } else { (b, a) };
-                    if let Some(blend) = self.pair_blend(front, back, horizontal, &p) {
-                        out.push(blend);
-                    }
-                }
-            }
-        }
-        out
+        self.pairs.iter().filter_map(|&(front, back, horizontal)| self.pair_blend(front as usize, back as usize, horizontal, &p)).collect()
     }
 
     fn pair_blend(&self, front: usize, back: usize, horizontal: bool, p: &impl Fn(usize) -> DVec3) -> Option<Blend> {
