@@ -181,6 +181,18 @@ mod tests {
     }
 
     #[test]
+    fn a_view_the_mesh_misses_composites_to_the_background() -> Result<()> {
+        // No covered pixel (the geometry pass's view that sees none of the mesh): [0, C] rows.
+        let none = PixelMap { pixels: Vec::new().into(), width: 3, height: 2 };
+        let rows = candle_core::Var::from_tensor(&Tensor::zeros((0, 2), candle_core::DType::F32, &Device::Cpu)?)?;
+        let over = none.composite(rows.as_tensor(), &[0.5, 0.25])?;
+        assert_eq!(over.to_vec2::<f32>()?, vec![vec![0.5, 0.25, 0.0]; 6]);
+        let g = over.sum_all()?.backward()?;
+        assert_eq!(g.get(rows.as_tensor()).map(|t| t.elem_count()), Some(0));
+        Ok(())
+    }
+
+    #[test]
     fn gradients_match_finite_differences() -> anyhow::Result<()> {
         let rows = Tensor::rand(0f64, 1.0, (4, 3), &Device::Cpu)?;
         let w = Tensor::rand(0f64, 1.0, (3, 3, 3), &Device::Cpu)?;
