@@ -18,16 +18,17 @@
 //!    a uniform-Adam step on u = (I + λL)x, then x = (I + λL)⁻¹u. kd and light take Adam steps.
 //!
 //! A healthy mesh: the connectivity is fixed (the hull is remeshed to well-shaped triangles before
-//! the pass), and a step that would flip or collapse a triangle is shortened (halved until none
-//! does). If even 1/256 of the step flips triangles, the pass stops with an error that names the
-//! iteration; it never carries on with a broken mesh. Degenerate triangles never reach the BVH.
+//! the pass), and a step that would flip or collapse a triangle is held back at that triangle's
+//! vertices or, when that would hold many, shortened (halved; `mesh_step_guard`). If even 1/256 of
+//! the step breaks triangles, the pass stops with an error that names the iteration; it never
+//! carries on with a broken mesh. Degenerate triangles never reach the BVH.
 
 use std::sync::Arc;
 use std::time::Instant;
 
 use anyhow::{bail, Context, Result};
 use candle_core::{DType, Device, Tensor, Var, D};
-use glam::{DVec3, Vec2, Vec3};
+use glam::{Vec2, Vec3};
 use indicatif::{ProgressBar, ProgressStyle};
 use obvhs::BvhBuildParams;
 use serde::Serialize;
@@ -51,6 +52,7 @@ use crate::rng::Sampler;
 use crate::scene::camera::median_pixel_footprint;
 use crate::scene::Camera;
 
+use super::mesh_step_guard::guard_step;
 use super::pixel_scatter::PixelMap;
 use super::view_loss_op::{view_loss, ViewLoss};
 
@@ -127,6 +129,9 @@ pub struct GeometryStep {
     pub mask_mse: f64,
     /// Share of Adam's step taken (below 1 when a full step would have flipped triangles).
     pub step_taken: f64,
+    /// Vertices held where they were so that no triangle broke (`mesh_step_guard`).
+    #[serde(default)]
+    pub held_vertices: usize,
     pub seconds: f64,
 }
 
@@ -183,28 +188,6 @@ fn mesh_at(start: &Mesh, x: &[[f64; 3]]) -> Mesh {
     m.positions = x.iter().map(to_vec3).collect();
     m.recompute_normals();
     m
-}
-
-/// Triangles the move from `a` to `b` breaks: whose orientation reversed, or whose area fell below
-/// `min_area2` (twice the area, squared). A triangle already that small in `a` (a remesh can
-/// leave a few needles) has no orientation to keep and counts only if it shrinks further.
-fn broken_triangles(tris: &[[u32; 3]], a: &[[f64; 3]], b: &[[f64; 3]], min_area2: f64) -> usize {
-    let n = |x: &[[f64; 3]], t: &[u32; 3]| {
-        let p = t.map(|i| DVec3::from_array(x[i as usize]));
-        (p[1] - p[0]).cross(p[2] - p[0])
-    };
-    tris.iter()
-        .filter(|t| {
-            let (na, nb) = (n(a, t), n(b, t));
-            if !nb.is_finite() {
-                return true;
-            }
-            if na.length_squared() < min_area2 {
-                return nb.length_squared() < na.length_squared();
-            }
-            na.dot(nb) <= 0.0 || nb.length_squared() < min_area2
-        })
-        .count()
 }
 
 fn mean_edge_length(mesh: &Mesh) -> f64 {
@@ -339,8 +322,8 @@ fn remesh_stage(mesh: &Mesh, vertex_kd: &[Vec3], target_edge: f64) -> Result<std
         m.triangles = t;
         m.recompute_normals();
         let degenerate = degenerate_triangles(&m, target_edge);
-        // A few needles are tolerated (they cover no pixel centre and the step keeps them from
-        // shrinking further; see `broken_triangles`), more than 1 in 1000 triangles is not.
+        // A few needles are tolerated (they cover no pixel centre and the step holds their vertices
+        // rather than shrink them further; see `mesh_step_guard`), more than 1 in 1000 triangles is not.
         if check_closed_manifold(&m).is_ok() && signed_volume(&m) > 0.0 && degenerate * 1000 <= m.triangles.len() {
             problems.push(if degenerate > 0 { format!("{degenerate} needle triangles tolerated") } else { String::new() });
             outcome = Some(m);
@@ -555,31 +538,23 @@ pub fn run_geometry_pass(start: &Mesh, views: &[GeometryView], config: &Geometry
             bail!("geometry pass: non-finite position gradient at iteration {it}");
         }
         let du = state.pos_adam.step(&state.ls.solve(&g_x), lr_factor);
-        let (mut share, mut accepted, mut broken) = (1.0, None, 0);
-        for _ in 0..9 {
-            let u_new: Vec<[f64; 3]> = state.u.iter().zip(&du).map(|(a, d)| std::array::from_fn(|k| a[k] + share * d[k])).collect();
-            let x_new = state.ls.solve(&u_new);
-            broken = broken_triangles(&state.triangles, &state.x, &x_new, state.min_area2);
-            if broken == 0 {
-                accepted = Some((u_new, x_new));
-                break;
-            }
-            share *= 0.5;
-        }
-        let Some((u_new, x_new)) = accepted else {
-            bail!(
+        let step = guard_step(&state.ls, &state.triangles, &state.u, &state.x, &du, state.min_area2).map_err(|c| {
+            anyhow::anyhow!(
                 "geometry pass: the mesh collapsed at iteration {it} (stage {} of {}, {} triangles): even 1/256 of the step \
-                 flips or degenerates {broken} triangles; lower the position step (step_per_edge) or start from a cleaner mesh",
+                 flips or degenerates {} triangles, too many to hold back; lower the position step (step_per_edge) or start \
+                 from a cleaner mesh",
                 stages.len(),
                 edges.len(),
-                state.triangles.len()
-            );
-        };
-        state.u = u_new;
-        state.x = x_new;
+                state.triangles.len(),
+                c.broken
+            )
+        })?;
+        let (share, held) = (step.share, step.held);
+        state.u = step.u;
+        state.x = step.x;
         timings.update += t.elapsed().as_secs_f64();
 
-        history.push(GeometryStep { iteration: it, loss: loss_value, mask_mse, step_taken: share, seconds: t_step.elapsed().as_secs_f64() });
+        history.push(GeometryStep { iteration: it, loss: loss_value, mask_mse, step_taken: share, held_vertices: held, seconds: t_step.elapsed().as_secs_f64() });
         bar.set_message(format!("loss {loss_value:.4} mask MSE {mask_mse:.4}"));
         bar.inc(1);
     }

@@ -11,6 +11,7 @@ pub mod fitter;
 pub mod geometry_pass;
 pub mod history;
 pub mod labels;
+pub mod mesh_step_guard;
 pub mod objective;
 pub mod parameters;
 pub mod pixel_scatter;
