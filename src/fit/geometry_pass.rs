@@ -27,7 +27,7 @@ use std::time::Instant;
 
 use anyhow::{bail, Context, Result};
 use candle_core::{DType, Device, Tensor, Var, D};
-use glam::{DVec3, Vec2, Vec3};
+use glam::{Vec2, Vec3};
 use indicatif::{ProgressBar, ProgressStyle};
 use obvhs::BvhBuildParams;
 use serde::Serialize;
@@ -39,6 +39,7 @@ use crate::geometry::remesh::isotropic_remesh;
 use crate::geometry::Mesh;
 use crate::image::Image;
 use crate::optim::adam::{Adam, GroupConfig, LrSchedule};
+use crate::optim::guarded_step::{degenerate_area2, guarded_step, GuardedStep};
 use crate::optim::large_steps::{LargeSteps, UniformAdam};
 use crate::optim::laplacian::UniformLaplacian;
 use crate::optim::vertex_smoothness::VertexSmoothness;
@@ -185,29 +186,7 @@ fn mesh_at(start: &Mesh, x: &[[f64; 3]]) -> Mesh {
     m
 }
 
-/// Triangles the move from `a` to `b` breaks: whose orientation reversed, or whose area fell below
-/// `min_area2` (twice the area, squared). A triangle already that small in `a` (a remesh can
-/// leave a few needles) has no orientation to keep and counts only if it shrinks further.
-fn broken_triangles(tris: &[[u32; 3]], a: &[[f64; 3]], b: &[[f64; 3]], min_area2: f64) -> usize {
-    let n = |x: &[[f64; 3]], t: &[u32; 3]| {
-        let p = t.map(|i| DVec3::from_array(x[i as usize]));
-        (p[1] - p[0]).cross(p[2] - p[0])
-    };
-    tris.iter()
-        .filter(|t| {
-            let (na, nb) = (n(a, t), n(b, t));
-            if !nb.is_finite() {
-                return true;
-            }
-            if na.length_squared() < min_area2 {
-                return nb.length_squared() < na.length_squared();
-            }
-            na.dot(nb) <= 0.0 || nb.length_squared() < min_area2
-        })
-        .count()
-}
-
-fn mean_edge_length(mesh: &Mesh) -> f64 {
+pub fn mean_edge_length(mesh: &Mesh) -> f64 {
     let mut sum = 0.0;
     for t in 0..mesh.triangles.len() {
         let p = mesh.triangle_positions(t);
@@ -304,8 +283,7 @@ impl StageState {
         let u = ls.to_u(&x);
         let edge = mean_edge_length(&template);
         let pos_adam = UniformAdam::new(x.len(), config.step_per_edge * edge);
-        // A triangle whose doubled area falls below 1e-6 of the mean edge squared is degenerate.
-        let min_area2 = (1e-6 * edge * edge).powi(2);
+        let min_area2 = degenerate_area2(edge);
         let dev = &Device::Cpu;
         let kd_rows: Vec<f32> = vertex_kd.iter().flat_map(|c| c.to_array()).collect();
         let kd = Var::from_tensor(&Tensor::from_vec(kd_rows, (x.len(), 3), dev)?)?;
@@ -378,7 +356,7 @@ fn remesh_stage(mesh: &Mesh, vertex_kd: &[Vec3], target_edge: f64) -> Result<std
 /// Triangles of `mesh` whose doubled area is below 1e-6 of `edge`² (the pass's own test of a
 /// degenerate triangle; see `StageState::min_area2`).
 fn degenerate_triangles(mesh: &Mesh, edge: f64) -> usize {
-    let min_area2 = (1e-6 * edge * edge).powi(2);
+    let min_area2 = degenerate_area2(edge);
     (0..mesh.triangles.len())
         .filter(|&t| {
             let [a, b, c] = mesh.triangle_positions(t).map(|p| p.as_dvec3());
@@ -414,7 +392,7 @@ const KD_SMOOTHNESS: f64 = 0.1;
 /// it over some 6 pixels, wider than the details the shading must grow inside the outline (a
 /// bun's crease, a blob of sauce on a plate), which then never form. λ = 5 spreads it over about
 /// 3 pixels. Measured on the default scene and the hotdog (docs/geometry.md).
-const GEOMETRY_LAMBDA: f64 = 5.0;
+pub const GEOMETRY_LAMBDA: f64 = 5.0;
 
 /// Rounds of the remesher between stages: the remesher's own default, as for the hull.
 const REMESH_ROUNDS: u16 = 10;
@@ -555,26 +533,16 @@ pub fn run_geometry_pass(start: &Mesh, views: &[GeometryView], config: &Geometry
             bail!("geometry pass: non-finite position gradient at iteration {it}");
         }
         let du = state.pos_adam.step(&state.ls.solve(&g_x), lr_factor);
-        let (mut share, mut accepted, mut broken) = (1.0, None, 0);
-        for _ in 0..9 {
-            let u_new: Vec<[f64; 3]> = state.u.iter().zip(&du).map(|(a, d)| std::array::from_fn(|k| a[k] + share * d[k])).collect();
-            let x_new = state.ls.solve(&u_new);
-            broken = broken_triangles(&state.triangles, &state.x, &x_new, state.min_area2);
-            if broken == 0 {
-                accepted = Some((u_new, x_new));
-                break;
-            }
-            share *= 0.5;
-        }
-        let Some((u_new, x_new)) = accepted else {
+        let step = guarded_step(&state.ls, &state.triangles, &state.x, &state.u, &du, state.min_area2);
+        let GuardedStep { u: u_new, x: x_new, share } = step.or_else(|broken| {
             bail!(
                 "geometry pass: the mesh collapsed at iteration {it} (stage {} of {}, {} triangles): even 1/256 of the step \
                  flips or degenerates {broken} triangles; lower the position step (step_per_edge) or start from a cleaner mesh",
                 stages.len(),
                 edges.len(),
                 state.triangles.len()
-            );
-        };
+            )
+        })?;
         state.u = u_new;
         state.x = x_new;
         timings.update += t.elapsed().as_secs_f64();
