@@ -387,9 +387,9 @@ fn refined_run_resumes_exactly_and_keeps_a_healthy_mesh() -> Result<()> {
     let f64s = |p: &[Vec3]| p.iter().map(|v| v.as_dvec3().to_array()).collect::<Vec<_>>();
     let edge = reconstruct::fit::geometry_pass::mean_edge_length(&s.atlas.mesh);
     assert_eq!(broken_triangles(&s.atlas.mesh.triangles, &f64s(start), &f64s(&moved), degenerate_area2(edge)), 0);
-    // Moved, gently: six steps of at most 1 % of an edge each.
+    // Moved, gently: six steps of at most 3 % of an edge each.
     eprintln!("largest vertex move {largest:.2e} (mean edge {edge:.3})");
-    assert!(largest > 0.0 && (largest as f64) < 0.06 * edge, "{largest}");
+    assert!(largest > 0.0 && (largest as f64) < 0.18 * edge, "{largest}");
     // Split-sum has no normal input: refused up front.
     let split = FitConfig { mode: ShadingMode::SplitSum, ..cfg.clone() };
     let err = Fit::new(split.clone(), Parameters::initial(&split)?, s.views.clone(), context(&s, &split)).err().expect("refused").to_string();
