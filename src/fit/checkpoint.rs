@@ -143,7 +143,7 @@ mod tests {
         let _ = std::fs::remove_dir_all(&dir);
         let t = |v: f32| Tensor::full(v, (2, 3), &Device::Cpu);
         let adam = AdamState { step: 1, slots: Vec::new() };
-        save(&dir, &t(1.0)?, &t(1.0)?, &t(1.0)?, &adam, &mut progress(1))?;
+        save(&dir, &t(1.0)?, &t(1.0)?, &t(1.0)?, &adam, Vec::new(), &mut progress(1))?;
         // Killed while writing iteration 2's state, then after renaming it but before progress.json:
         // the checkpoint of iteration 1 is what loads, with its own tensors.
         std::fs::write(dir.join(format!(".{}", state_file_name(2).replace(".safetensors", ".partial.safetensors"))), b"half")?;
@@ -152,7 +152,7 @@ mod tests {
         let cp = load(&dir)?.expect("a checkpoint");
         assert_eq!((cp.progress.iteration, cp.kd.to_vec2::<f32>()?[0][0]), (1, 1.0));
         // A completed save commits iteration 2 and drops the older state files.
-        save(&dir, &t(2.0)?, &t(2.0)?, &t(2.0)?, &adam, &mut progress(2))?;
+        save(&dir, &t(2.0)?, &t(2.0)?, &t(2.0)?, &adam, Vec::new(), &mut progress(2))?;
         let cp = load(&dir)?.expect("a checkpoint");
         assert_eq!((cp.progress.iteration, cp.ks.to_vec2::<f32>()?[1][2]), (2, 2.0));
         assert!(!dir.join(state_file_name(1)).exists());
