@@ -143,7 +143,7 @@ fn save(dir: &Path, kd: f32) -> anyhow::Result<()> {
         adam_step: 0,
         adam_slots: Vec::new(),
     };
-    checkpoint::save(dir, &t(4, kd), &t(4, 0.5), &t(6, 1.0), &adam, &mut progress)
+    checkpoint::save(dir, &t(4, kd), &t(4, 0.5), &t(6, 1.0), &adam, Vec::new(), &mut progress)
 }
 
 /// A full disk: every temporary file the checkpoint writer may create is a link to /dev/full, whose

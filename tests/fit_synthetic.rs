@@ -7,7 +7,11 @@
 //! - a 500-iteration run under a light with a 1e4-radiance sun keeps every loss finite;
 //! - on a concave scene whose targets have interreflection (Monte Carlo, 3 bounces), training
 //!   with the effect simulated recovers the albedo better than direct light only, which must
-//!   brighten the albedo where light bounces.
+//!   brighten the albedo where light bounces;
+//! - vertex refinement: the pixels' shading normals as functions of the welded positions equal
+//!   the G-buffer's and their gradient through Monte Carlo shading matches finite differences; a
+//!   refined run resumes exactly from a checkpoint, keeps its seams closed and its triangles
+//!   unflipped, and split-sum training refuses it.
 
 use std::sync::Arc;
 
@@ -165,7 +169,7 @@ fn mean_view_psnr(fit: &Fit) -> Result<f64> {
     use reconstruct::fit::objective::batch_psnr;
     let mut total = 0.0;
     for v in &fit.views {
-        let r = render_batch(&[v], &fit.params, &fit.ctx, 0)?;
+        let r = render_batch(&[v], &fit.params, &fit.ctx, 0, None)?;
         total += batch_psnr(&r.rgb, &v.target)?;
     }
     Ok(total / fit.views.len() as f64)
@@ -223,28 +227,41 @@ fn simulating_interreflection_recovers_the_albedo_that_direct_light_overestimate
     Ok(())
 }
 
+/// What a finished fit leaves: textures, light and (with refinement) the mesh's positions.
+type FitOutcome = (MaterialTextures, Vec<Vec3>, Option<Vec<Vec3>>);
+
+fn outcome(fit: &Fit) -> Result<FitOutcome> {
+    Ok((fit.params.textures()?, fit.params.light_cube()?.data, fit.refined_mesh().map(|m| m.positions)))
+}
+
+/// `cfg` run straight through, and run to half its length into a checkpoint in `dir` then resumed
+/// by a new fit to the end.
+fn straight_and_resumed(s: &Scene, cfg: &FitConfig, dir: &std::path::Path) -> Result<(FitOutcome, FitOutcome)> {
+    let straight = {
+        let mut fit = Fit::new(cfg.clone(), Parameters::initial(cfg)?, s.views.clone(), context(s, cfg))?;
+        fit.run(None, false)?;
+        outcome(&fit)?
+    };
+    let _ = std::fs::remove_dir_all(dir);
+    {
+        let half = FitConfig { iterations: cfg.iterations / 2, ..cfg.clone() };
+        let mut fit = Fit::new(half, Parameters::initial(cfg)?, s.views.clone(), context(s, cfg))?;
+        fit.run(Some(dir), false)?;
+    }
+    let mut fit = Fit::new(cfg.clone(), Parameters::initial(cfg)?, s.views.clone(), context(s, cfg))?;
+    assert!(fit.resume(dir)?, "checkpoint not found");
+    assert_eq!(fit.iteration(), cfg.iterations / 2);
+    fit.run(Some(dir), false)?;
+    Ok((straight, outcome(&fit)?))
+}
+
 #[test]
 fn resumed_run_matches_the_uninterrupted_one() -> Result<()> {
     let s = scene(0.0)?;
     let cfg = config(8);
-    let straight = {
-        let mut fit = Fit::new(cfg.clone(), Parameters::initial(&cfg)?, s.views.clone(), context(&s, &cfg))?;
-        fit.run(None, false)?;
-        (fit.params.textures()?, fit.params.light_cube()?.data)
-    };
     let dir = std::env::temp_dir().join(format!("reconstruct-resume-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    {
-        let half = FitConfig { iterations: 4, ..cfg.clone() };
-        let mut fit = Fit::new(half, Parameters::initial(&cfg)?, s.views.clone(), context(&s, &cfg))?;
-        fit.run(Some(&dir), false)?;
-    }
-    let mut fit = Fit::new(cfg.clone(), Parameters::initial(&cfg)?, s.views.clone(), context(&s, &cfg))?;
-    assert!(fit.resume(&dir)?, "checkpoint not found");
-    assert_eq!(fit.iteration(), 4);
-    fit.run(Some(&dir), false)?;
-    assert_eq!(fit.params.textures()?, straight.0);
-    assert_eq!(fit.params.light_cube()?.data, straight.1);
+    let (straight, resumed) = straight_and_resumed(&s, &cfg, &dir)?;
+    assert!(straight == resumed, "the resumed run differs");
     // Other settings must not silently reuse the checkpoint.
     let other = FitConfig { lr_material: 0.5, ..cfg.clone() };
     let mut wrong = Fit::new(other.clone(), Parameters::initial(&other)?, s.views.clone(), context(&s, &other))?;
@@ -291,5 +308,91 @@ fn exported_model_reloads_and_renders_the_same() -> Result<()> {
     // 8-bit textures and OBJ decimals are the only differences.
     assert!(psnr > 40.0, "reloaded model renders at {psnr:.1} dB");
     std::fs::remove_dir_all(&dir)?;
+    Ok(())
+}
+
+/// Refinement on the ellipsoid: a Monte Carlo fit whose vertices move too.
+fn refine_config(iterations: usize) -> FitConfig {
+    FitConfig { mode: ShadingMode::MonteCarlo, spp: 2, refine_geometry: true, ..config(iterations) }
+}
+
+#[test]
+fn refinement_normals_are_the_gbuffers_and_their_gradient_matches_finite_differences() -> Result<()> {
+    use candle_core::{Device, Tensor};
+    use reconstruct::fit::vertex_refinement::VertexRefinement;
+    use reconstruct::optim::gradcheck::{check_gradient_with, GradCheckOptions};
+    use reconstruct::render::montecarlo::{McSettings, TraceScene};
+    use reconstruct::render::montecarlo_op::{shade_mc_with_normal, McPixel, McShading};
+    let s = scene(0.0)?;
+    let r = VertexRefinement::new(&s.atlas.mesh)?;
+    // The welded mesh is the atlas mesh with its seams closed: fewer vertices, same surface.
+    assert!(r.positions().len() < s.atlas.mesh.positions.len());
+    let mesh = r.mesh();
+    let bvh = Bvh::build(&mesh);
+    // A small view (FD perturbs every vertex) on the moved-to mesh (here: the start).
+    let camera = Camera::look_at(Vec3::new(2.0, 1.5, 1.2), Vec3::ZERO, Vec3::Z, 0.7, 12, 12);
+    let view = TrainingView::from_image("small", &camera, 0, &Image::new(12, 12, 4), &mesh, &bvh)?.retraced(&mesh, &bvh);
+    let dev = &Device::Cpu;
+    let x: Vec<f64> = r.positions().iter().flatten().copied().collect();
+    let x = Tensor::from_vec(x, (r.positions().len(), 3), dev)?;
+    let normals = r.pixel_normals(&[&view], &x)?.to_vec2::<f64>()?;
+    assert!(view.len() > 40, "{} pixels", view.len());
+    for (n, s) in normals.iter().zip(&view.surfels) {
+        // The surfel's normal faces the camera; the operator's is the mesh's own orientation.
+        let cos = Vec3::new(n[0] as f32, n[1] as f32, n[2] as f32).dot(s.normal).abs();
+        assert!(cos > 1.0 - 1e-5, "pixel normal {n:?} vs G-buffer {}", s.normal);
+    }
+    // Shading as a function of the positions, samples fixed at the start.
+    let pixels: Vec<Option<McPixel>> = view.surfels.iter().zip(&view.pixels).map(|(s, &p)| Some(McPixel::from_surfel(s, view.origin, p as u64))).collect();
+    let n = pixels.len();
+    let kd: Vec<[f32; 3]> = (0..n).map(|i| [0.3 + 0.05 * (i % 7) as f32, 0.5, 0.4]).collect();
+    let ks: Vec<[f32; 3]> = (0..n).map(|i| [0.0, 0.2 + 0.1 * (i % 5) as f32, 0.5 * (i % 2) as f32]).collect();
+    let settings = McSettings { spp: 2, seed: 1, effects: Effects { shadows: true, specular: true, indirect_bounces: 0 }, ray_epsilon: ray_epsilon(&mesh) };
+    let op = McShading::prepare(&pixels, &kd, &ks, &s.light, &TraceScene { mesh: &mesh, bvh: &bvh, materials: &mesh }, &settings);
+    let rows = |v: &[[f32; 3]]| Tensor::from_vec(v.iter().flatten().map(|&c| c as f64).collect::<Vec<_>>(), (v.len(), 3), dev);
+    let (kd, ks) = (rows(&kd)?, rows(&ks)?);
+    let light: Vec<f64> = s.light.data.iter().flat_map(|c| c.to_array()).map(|c| c as f64).collect();
+    let light = Tensor::from_vec(light, (6, s.light.res, s.light.res, 3), dev)?;
+    let weights = Tensor::rand(0.5f64, 1.5, (n, 6), dev)?;
+    let report = check_gradient_with(
+        |p| (shade_mc_with_normal(&op, &kd, &ks, &light, &r.pixel_normals(&[&view], &p[0]).map_err(|e| candle_core::Error::Msg(format!("{e:#}")))?)? * &weights)?.sum_all(),
+        &[x],
+        &GradCheckOptions { eps: 1e-7, tol: 1e-3, max_elements: 2000, seed: 5 },
+    )?;
+    eprintln!("{report}");
+    assert!(report.inputs[0].max_abs_fd > 0.0);
+    Ok(())
+}
+
+#[test]
+fn refined_run_resumes_exactly_and_keeps_a_healthy_mesh() -> Result<()> {
+    use reconstruct::optim::guarded_step::{broken_triangles, degenerate_area2};
+    let s = scene(0.0)?;
+    let cfg = refine_config(6);
+    let dir = std::env::temp_dir().join(format!("reconstruct-resume-refine-{}", std::process::id()));
+    let (straight, resumed) = straight_and_resumed(&s, &cfg, &dir)?;
+    assert!(straight == resumed, "the resumed refinement differs");
+    std::fs::remove_dir_all(&dir)?;
+    let moved = straight.2.expect("refined positions");
+    let start = &s.atlas.mesh.positions;
+    let largest = moved.iter().zip(start).map(|(a, b)| (*a - *b).length()).fold(0.0, f32::max);
+    // Seams stay closed: vertices that started together end together.
+    for i in 0..start.len() {
+        for j in i + 1..(i + 40).min(start.len()) {
+            if start[i] == start[j] {
+                assert_eq!(moved[i], moved[j], "seam vertices {i} and {j} came apart");
+            }
+        }
+    }
+    let f64s = |p: &[Vec3]| p.iter().map(|v| v.as_dvec3().to_array()).collect::<Vec<_>>();
+    let edge = reconstruct::fit::geometry_pass::mean_edge_length(&s.atlas.mesh);
+    assert_eq!(broken_triangles(&s.atlas.mesh.triangles, &f64s(start), &f64s(&moved), degenerate_area2(edge)), Vec::<usize>::new());
+    // Moved, gently: six steps of at most 3 % of an edge each.
+    eprintln!("largest vertex move {largest:.2e} (mean edge {edge:.3})");
+    assert!(largest > 0.0 && (largest as f64) < 0.18 * edge, "{largest}");
+    // Split-sum has no normal input: refused up front.
+    let split = FitConfig { mode: ShadingMode::SplitSum, ..cfg.clone() };
+    let err = Fit::new(split.clone(), Parameters::initial(&split)?, s.views.clone(), context(&s, &split)).err().expect("refused").to_string();
+    assert!(err.contains("--refine-geometry") && err.contains("Monte Carlo"), "{err}");
     Ok(())
 }

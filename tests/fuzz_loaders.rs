@@ -388,7 +388,7 @@ fn checkpoint_files() {
         adam_slots: vec![("kd".into(), 3)],
     };
     let seed_dir = dir.join("seed");
-    checkpoint::save(&seed_dir, &t(4, 0.5), &t(4, 0.25), &t(6, 1.0), &adam, &mut progress).expect("test setup");
+    checkpoint::save(&seed_dir, &t(4, 0.5), &t(4, 0.25), &t(6, 1.0), &adam, Vec::new(), &mut progress).expect("test setup");
     let files: Vec<(String, Vec<u8>)> = std::fs::read_dir(&seed_dir)
         .expect("test setup")
         .filter_map(|e| e.ok())

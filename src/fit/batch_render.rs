@@ -15,7 +15,7 @@ use crate::optim::texture::sample_bilinear;
 use crate::render::denoise::{BilateralParams, CrossBilateral};
 use crate::render::effects::Effects;
 use crate::render::montecarlo::{McSettings, TraceScene};
-use crate::render::montecarlo_op::{shade_mc, McPixel, McShading};
+use crate::render::montecarlo_op::{shade_mc, shade_mc_with_normal, McPixel, McShading};
 use crate::render::splitsum_op::{shade_splitsum, LightMaps, SplitSumShading};
 use crate::render::view::ShadingMode;
 
@@ -64,7 +64,9 @@ pub fn row_offsets(views: &[&TrainingView]) -> Vec<usize> {
 }
 
 /// Renders `views` with the current `params`. `iteration` reseeds the Monte Carlo samples.
-pub fn render_batch(views: &[&TrainingView], params: &Parameters, ctx: &ShadingContext, iteration: u64) -> Result<BatchRender> {
+/// `normals` [N, 3], when given, are the covered pixels' shading normals as a function of the
+/// vertices (`fit::vertex_refinement`; Monte Carlo only).
+pub fn render_batch(views: &[&TrainingView], params: &Parameters, ctx: &ShadingContext, iteration: u64, normals: Option<&Tensor>) -> Result<BatchRender> {
     let offsets = row_offsets(views);
     let n = offsets[offsets.len() - 1];
     let uv: Arc<[[f32; 2]]> = views.iter().flat_map(|v| v.uv.iter().copied()).collect::<Vec<_>>().into();
@@ -72,12 +74,15 @@ pub fn render_batch(views: &[&TrainingView], params: &Parameters, ctx: &ShadingC
     let ks = sample_bilinear(params.ks.as_tensor(), &uv)?;
     let (rgb, light_buffers) = match ctx.mode {
         ShadingMode::SplitSum => {
+            if normals.is_some() {
+                anyhow::bail!("vertex refinement needs Monte Carlo shading (the split-sum operator has no normal input)");
+            }
             let geometry: Vec<_> = views.iter().flat_map(|v| v.normal_and_view()).collect();
             let op = SplitSumShading::new(&geometry, ctx.light_maps.clone(), ctx.lut.clone(), ctx.effects);
             (shade_splitsum(&op, &kd, &ks, params.light.as_tensor())?, None)
         }
         ShadingMode::MonteCarlo => {
-            let (diffuse, specular) = shade_batch_mc(views, &offsets, &kd, &ks, params, ctx, iteration)?;
+            let (diffuse, specular) = shade_batch_mc(views, &offsets, &kd, &ks, params, ctx, iteration, normals)?;
             let ks_metal = ks.narrow(D::Minus1, 2, 1)?;
             let albedo = kd.broadcast_mul(&ks_metal.affine(-1.0, 1.0)?)?;
             let rgb = ((albedo * &diffuse)? + &specular)?;
@@ -91,7 +96,8 @@ pub fn render_batch(views: &[&TrainingView], params: &Parameters, ctx: &ShadingC
 
 /// Monte Carlo shading of the batch: (demodulated diffuse light, specular radiance), [N, 3] each,
 /// optionally denoised per view in image space.
-fn shade_batch_mc(views: &[&TrainingView], offsets: &[usize], kd: &Tensor, ks: &Tensor, params: &Parameters, ctx: &ShadingContext, iteration: u64) -> Result<(Tensor, Tensor)> {
+#[allow(clippy::too_many_arguments)] // render_batch's inputs, passed on
+fn shade_batch_mc(views: &[&TrainingView], offsets: &[usize], kd: &Tensor, ks: &Tensor, params: &Parameters, ctx: &ShadingContext, iteration: u64, normals: Option<&Tensor>) -> Result<(Tensor, Tensor)> {
     let to_rows = |t: &Tensor| -> Result<Vec<[f32; 3]>> {
         Ok(t.detach().flatten_all()?.to_vec1::<f32>()?.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect())
     };
@@ -118,7 +124,10 @@ fn shade_batch_mc(views: &[&TrainingView], offsets: &[usize], kd: &Tensor, ks: &
     };
     let scene = TraceScene { mesh: &ctx.mesh, bvh: &ctx.bvh, materials };
     let op = McShading::prepare(&pixels, &to_rows(kd)?, &to_rows(ks)?, &light, &scene, &settings);
-    let out = shade_mc(&op, kd, ks, params.light.as_tensor())?;
+    let out = match normals {
+        Some(n) => shade_mc_with_normal(&op, kd, ks, params.light.as_tensor(), n)?,
+        None => shade_mc(&op, kd, ks, params.light.as_tensor())?,
+    };
     let (mut diffuse, mut specular) = (out.narrow(D::Minus1, 0, 3)?, out.narrow(D::Minus1, 3, 3)?);
     if ctx.denoise {
         let (mut d, mut s) = (Vec::new(), Vec::new());

@@ -1,7 +1,8 @@
 //! Checkpoints: the parameters, Adam's moments and the history of a run, written every few
 //! iterations so an interrupted run resumes where it stopped (same run identity required).
 //!
-//! Files in the checkpoint folder: `state-NNNNNN.safetensors` (tensors after iteration NNNNNN) and
+//! Files in the checkpoint folder: `state-NNNNNN.safetensors` (tensors after iteration NNNNNN; with
+//! vertex refinement also its positions and moments, `refine/…`) and
 //! `progress.json` (iteration, the state file's name, the run identity, history). A save writes
 //! the new state file (temporary name, then renamed), then `progress.json` the same way, and only
 //! then deletes older state files; `progress.json` is the commit point. A kill at any moment leaves
@@ -42,6 +43,8 @@ pub struct Checkpoint {
     pub ks: Tensor,
     pub light: Tensor,
     pub adam: AdamState,
+    /// The state file's other tensors (`refine/…`).
+    pub extra: HashMap<String, Tensor>,
 }
 
 /// The state file of iteration `iteration`.
@@ -49,8 +52,8 @@ pub fn state_file_name(iteration: usize) -> String {
     format!("state-{iteration:06}.safetensors")
 }
 
-/// Saves a checkpoint; `progress.state_file` is set here.
-pub fn save(dir: &Path, kd: &Tensor, ks: &Tensor, light: &Tensor, adam: &AdamState, progress: &mut Progress) -> Result<()> {
+/// Saves a checkpoint; `progress.state_file` is set here. `extra` are further named tensors.
+pub fn save(dir: &Path, kd: &Tensor, ks: &Tensor, light: &Tensor, adam: &AdamState, extra: Vec<(String, Tensor)>, progress: &mut Progress) -> Result<()> {
     std::fs::create_dir_all(dir).with_context(|| format!("cannot create checkpoint folder {}", dir.display()))?;
     let mut tensors: HashMap<String, Tensor> = HashMap::new();
     tensors.insert("kd".into(), kd.clone());
@@ -60,6 +63,7 @@ pub fn save(dir: &Path, kd: &Tensor, ks: &Tensor, light: &Tensor, adam: &AdamSta
         tensors.insert(format!("adam/{key}/m"), m.clone());
         tensors.insert(format!("adam/{key}/v"), v.clone());
     }
+    tensors.extend(extra);
     progress.state_file = state_file_name(progress.iteration);
     atomic_write::replace_file(&dir.join(&progress.state_file), |p| {
         candle_core::safetensors::save(&tensors, p).with_context(|| format!("cannot write checkpoint {}", p.display()))
@@ -117,7 +121,7 @@ pub fn load(dir: &Path) -> Result<Option<Checkpoint>> {
         bail!("checkpoint {}: {} history records for {} iterations", progress_path.display(), progress.history.len(), progress.iteration);
     }
     let adam = AdamState { step: progress.adam_step, slots };
-    Ok(Some(Checkpoint { progress, kd, ks, light, adam }))
+    Ok(Some(Checkpoint { progress, kd, ks, light, adam, extra: tensors }))
 }
 
 #[cfg(test)]
@@ -139,7 +143,7 @@ mod tests {
         let _ = std::fs::remove_dir_all(&dir);
         let t = |v: f32| Tensor::full(v, (2, 3), &Device::Cpu);
         let adam = AdamState { step: 1, slots: Vec::new() };
-        save(&dir, &t(1.0)?, &t(1.0)?, &t(1.0)?, &adam, &mut progress(1))?;
+        save(&dir, &t(1.0)?, &t(1.0)?, &t(1.0)?, &adam, Vec::new(), &mut progress(1))?;
         // Killed while writing iteration 2's state, then after renaming it but before progress.json:
         // the checkpoint of iteration 1 is what loads, with its own tensors.
         std::fs::write(dir.join(format!(".{}", state_file_name(2).replace(".safetensors", ".partial.safetensors"))), b"half")?;
@@ -148,7 +152,7 @@ mod tests {
         let cp = load(&dir)?.expect("a checkpoint");
         assert_eq!((cp.progress.iteration, cp.kd.to_vec2::<f32>()?[0][0]), (1, 1.0));
         // A completed save commits iteration 2 and drops the older state files.
-        save(&dir, &t(2.0)?, &t(2.0)?, &t(2.0)?, &adam, &mut progress(2))?;
+        save(&dir, &t(2.0)?, &t(2.0)?, &t(2.0)?, &adam, Vec::new(), &mut progress(2))?;
         let cp = load(&dir)?.expect("a checkpoint");
         assert_eq!((cp.progress.iteration, cp.ks.to_vec2::<f32>()?[1][2]), (2, 2.0));
         assert!(!dir.join(state_file_name(1)).exists());

@@ -74,6 +74,11 @@ pub struct FitConfig {
     /// another prior is never resumed).
     #[serde(default)]
     pub prior_source: String,
+    /// Move the vertices too, through the shading normal (`fit::vertex_refinement`; Monte Carlo
+    /// training only). Off by default until measured to help (docs/geometry.md). Left out of
+    /// the settings' JSON when off, so the run identities of runs without it are unchanged.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub refine_geometry: bool,
 }
 
 impl Default for FitConfig {
@@ -99,6 +104,7 @@ impl Default for FitConfig {
             seed: 0,
             checkpoint_every: 100,
             prior_source: "none".into(),
+            refine_geometry: false,
         }
     }
 }

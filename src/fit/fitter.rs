@@ -1,15 +1,22 @@
 //! The optimisation loop: batches of views → differentiable render → loss → backward → Adam (per
 //! parameter group, warm-up and decay, clamps), with a progress bar and checkpoints a rerun resumes.
+//! With `FitConfig::refine_geometry` each step also moves the mesh (`vertex_refinement`).
 
 use std::path::Path;
+use std::sync::Arc;
 use std::time::Instant;
 
 use anyhow::{bail, Context, Result};
 use indicatif::{ProgressBar, ProgressStyle};
+use obvhs::BvhBuildParams;
+
+use crate::geometry::bvh::Bvh;
+use crate::geometry::Mesh;
 
 use crate::material::brdf::MIN_ROUGHNESS;
 use crate::optim::adam::{Adam, GroupConfig, LrSchedule};
 use crate::optim::adam::set_var;
+use crate::render::view::ShadingMode;
 use crate::rng::Sampler;
 
 use super::batch_render::{render_batch, ShadingContext};
@@ -20,6 +27,7 @@ use super::objective::objective;
 use super::settings_diff::differences;
 use super::parameters::Parameters;
 use super::training_view::TrainingView;
+use super::vertex_refinement::VertexRefinement;
 
 /// Lower clamp of the light's radiance after each step: 0, the physical floor. NVDiffRecMC clamps at
 /// 0.01 (its comment: the light's gradient vanished at 0); docs/model.md, *Differences from NVDiffRecMC*.
@@ -32,6 +40,8 @@ pub struct Fit {
     pub ctx: ShadingContext,
     pub history: Vec<IterationRecord>,
     adam: Adam,
+    /// The moving mesh, with `config.refine_geometry` (`ctx.mesh` and `ctx.bvh` follow it).
+    refine: Option<VertexRefinement>,
     /// What a checkpoint must match to be resumed: by default the fit's own settings
     /// ([`Fit::own_identity`]); a job replaces it with its run identity ([`Fit::set_identity`]).
     identity: serde_json::Value,
@@ -62,7 +72,15 @@ impl Fit {
         }
         let adam = optimiser(&config, &params)?;
         let identity = Self::own_identity(&config, &ctx)?;
-        Ok(Fit { config, params, views, ctx, history: Vec::new(), adam, identity })
+        let refine = if config.refine_geometry {
+            if config.mode != ShadingMode::MonteCarlo {
+                bail!("vertex refinement (--refine-geometry) needs Monte Carlo training (--mode mc): the split-sum operator has no normal input");
+            }
+            Some(VertexRefinement::new(&ctx.mesh)?)
+        } else {
+            None
+        };
+        Ok(Fit { config, params, views, ctx, history: Vec::new(), adam, refine, identity })
     }
 
     /// The fit's own resume identity: its settings without bookkeeping
@@ -75,6 +93,11 @@ impl Fit {
     /// this fit's settings), and what checkpoints record.
     pub fn set_identity(&mut self, identity: serde_json::Value) {
         self.identity = identity;
+    }
+
+    /// The refined mesh at its current positions (None without refinement).
+    pub fn refined_mesh(&self) -> Option<Mesh> {
+        self.refine.as_ref().map(VertexRefinement::mesh)
     }
 
     /// Iterations done.
@@ -117,8 +140,25 @@ impl Fit {
     pub fn step(&mut self) -> Result<IterationRecord> {
         let t = Instant::now();
         let it = self.iteration();
-        let batch: Vec<&TrainingView> = self.batch_for(it).into_iter().map(|i| &self.views[i]).collect();
-        let render = render_batch(&batch, &self.params, &self.ctx, it as u64)?;
+        let indices = self.batch_for(it);
+        // With refinement: the mesh at the current positions, its BVH, the batch retraced on it.
+        let moved = match &self.refine {
+            Some(r) => {
+                let mesh = Arc::new(r.mesh());
+                let bvh = Arc::new(Bvh::build_with(&mesh, BvhBuildParams::fastest_build()));
+                let views: Vec<TrainingView> = indices.iter().map(|&i| self.views[i].retraced(&mesh, &bvh)).collect();
+                self.ctx.mesh = mesh;
+                self.ctx.bvh = bvh;
+                Some(views)
+            }
+            None => None,
+        };
+        let batch: Vec<&TrainingView> = match &moved {
+            Some(views) => views.iter().collect(),
+            None => indices.iter().map(|&i| &self.views[i]).collect(),
+        };
+        let refine_step = self.refine.as_ref().map(|r| r.begin_step(&batch)).transpose()?;
+        let render = render_batch(&batch, &self.params, &self.ctx, it as u64, refine_step.as_ref().map(|s| &s.normals))?;
         let (loss, terms) = objective(&batch, &render, &self.params, &self.config, it)?;
         if !terms.total.is_finite() {
             bail!("the loss became non-finite at iteration {it} (terms: {terms:?}); lower the learning rates or check the inputs");
@@ -126,6 +166,9 @@ impl Fit {
         let grads = loss.backward()?;
         let lr_factor = self.adam.lr_factor();
         self.adam.step(&grads)?;
+        if let (Some(r), Some(s)) = (self.refine.as_mut(), &refine_step) {
+            r.end_step(s, &grads, lr_factor, it)?;
+        }
         let record = IterationRecord { iteration: it, terms, lr_factor, seconds: t.elapsed().as_secs_f64() };
         self.history.push(record.clone());
         Ok(record)
@@ -159,6 +202,9 @@ impl Fit {
         set_var(&self.params.ks, &cp.ks).context("checkpoint ks")?;
         set_var(&self.params.light, &cp.light).context("checkpoint light")?;
         self.adam.restore(&cp.adam)?;
+        if let Some(r) = self.refine.as_mut() {
+            r.restore(&cp.extra).with_context(|| format!("resuming the vertex refinement from {}", dir.display()))?;
+        }
         self.history = cp.progress.history;
         Ok(true)
     }
@@ -173,7 +219,11 @@ impl Fit {
             adam_step: state.step,
             adam_slots: state.slots.iter().map(|(k, _, _, s)| (k.clone(), *s)).collect(),
         };
-        checkpoint::save(dir, self.params.kd.as_tensor(), self.params.ks.as_tensor(), self.params.light.as_tensor(), &state, &mut progress)
+        let extra = match &self.refine {
+            Some(r) => r.checkpoint_tensors()?,
+            None => Vec::new(),
+        };
+        checkpoint::save(dir, self.params.kd.as_tensor(), self.params.ks.as_tensor(), self.params.light.as_tensor(), &state, extra, &mut progress)
     }
 
     /// Runs until `config.iterations`, checkpointing into `checkpoint_dir` every

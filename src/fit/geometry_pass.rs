@@ -19,7 +19,7 @@
 //!
 //! A healthy mesh: the connectivity is fixed (the hull is remeshed to well-shaped triangles before
 //! the pass), and a step that would flip or collapse a triangle is held back at that triangle's
-//! vertices or, when that would hold many, shortened (halved; `mesh_step_guard`). If even 1/256 of
+//! vertices or, when that would hold many, shortened (halved; `optim::guarded_step`). If even 1/256 of
 //! the step breaks triangles, the pass stops with an error that names the iteration; it never
 //! carries on with a broken mesh. Degenerate triangles never reach the BVH.
 
@@ -40,6 +40,7 @@ use crate::geometry::remesh::isotropic_remesh;
 use crate::geometry::Mesh;
 use crate::image::Image;
 use crate::optim::adam::{Adam, GroupConfig, LrSchedule};
+use crate::optim::guarded_step::{degenerate_area2, guard_step};
 use crate::optim::large_steps::{LargeSteps, UniformAdam};
 use crate::optim::laplacian::UniformLaplacian;
 use crate::optim::vertex_smoothness::VertexSmoothness;
@@ -52,7 +53,6 @@ use crate::rng::Sampler;
 use crate::scene::camera::median_pixel_footprint;
 use crate::scene::Camera;
 
-use super::mesh_step_guard::guard_step;
 use super::pixel_scatter::PixelMap;
 use super::view_loss_op::{view_loss, ViewLoss};
 
@@ -129,7 +129,7 @@ pub struct GeometryStep {
     pub mask_mse: f64,
     /// Share of Adam's step taken (below 1 when a full step would have flipped triangles).
     pub step_taken: f64,
-    /// Vertices held where they were so that no triangle broke (`mesh_step_guard`).
+    /// Vertices held where they were so that no triangle broke (`optim::guarded_step`).
     #[serde(default)]
     pub held_vertices: usize,
     pub seconds: f64,
@@ -190,7 +190,7 @@ fn mesh_at(start: &Mesh, x: &[[f64; 3]]) -> Mesh {
     m
 }
 
-fn mean_edge_length(mesh: &Mesh) -> f64 {
+pub fn mean_edge_length(mesh: &Mesh) -> f64 {
     let mut sum = 0.0;
     for t in 0..mesh.triangles.len() {
         let p = mesh.triangle_positions(t);
@@ -287,8 +287,7 @@ impl StageState {
         let u = ls.to_u(&x);
         let edge = mean_edge_length(&template);
         let pos_adam = UniformAdam::new(x.len(), config.step_per_edge * edge);
-        // A triangle whose doubled area falls below 1e-6 of the mean edge squared is degenerate.
-        let min_area2 = (1e-6 * edge * edge).powi(2);
+        let min_area2 = degenerate_area2(edge);
         let dev = &Device::Cpu;
         let kd_rows: Vec<f32> = vertex_kd.iter().flat_map(|c| c.to_array()).collect();
         let kd = Var::from_tensor(&Tensor::from_vec(kd_rows, (x.len(), 3), dev)?)?;
@@ -323,7 +322,7 @@ fn remesh_stage(mesh: &Mesh, vertex_kd: &[Vec3], target_edge: f64) -> Result<std
         m.recompute_normals();
         let degenerate = degenerate_triangles(&m, target_edge);
         // A few needles are tolerated (they cover no pixel centre and the step holds their vertices
-        // rather than shrink them further; see `mesh_step_guard`), more than 1 in 1000 triangles is not.
+        // rather than shrink them further; see `optim::guarded_step`), more than 1 in 1000 triangles is not.
         if check_closed_manifold(&m).is_ok() && signed_volume(&m) > 0.0 && degenerate * 1000 <= m.triangles.len() {
             problems.push(if degenerate > 0 { format!("{degenerate} needle triangles tolerated") } else { String::new() });
             outcome = Some(m);
@@ -361,7 +360,7 @@ fn remesh_stage(mesh: &Mesh, vertex_kd: &[Vec3], target_edge: f64) -> Result<std
 /// Triangles of `mesh` whose doubled area is below 1e-6 of `edge`² (the pass's own test of a
 /// degenerate triangle; see `StageState::min_area2`).
 fn degenerate_triangles(mesh: &Mesh, edge: f64) -> usize {
-    let min_area2 = (1e-6 * edge * edge).powi(2);
+    let min_area2 = degenerate_area2(edge);
     (0..mesh.triangles.len())
         .filter(|&t| {
             let [a, b, c] = mesh.triangle_positions(t).map(|p| p.as_dvec3());
@@ -400,7 +399,7 @@ const KD_SMOOTHNESS: f64 = 0.1;
 /// (docs/geometry.md): 19 → 5 → 2 lowers the test-view normal error on both (16.5° → 12.0° → 9.7°
 /// and 16.3° → 12.4° → 11.6°); λ = 1 stopped the default scene's pass at iteration 223 (before
 /// the step guard held slivers back), so 2 keeps a margin.
-const GEOMETRY_LAMBDA: f64 = 2.0;
+pub const GEOMETRY_LAMBDA: f64 = 2.0;
 
 /// Rounds of the remesher between stages: the remesher's own default, as for the hull.
 const REMESH_ROUNDS: u16 = 10;

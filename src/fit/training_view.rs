@@ -108,6 +108,16 @@ impl TrainingView {
         self.pixels.len()
     }
 
+    /// This view on a moved mesh (same triangles, e.g. `fit::vertex_refinement`'s): each covered
+    /// pixel's surfel and UV retraced; the pixel list, targets and labels are kept, and a pixel
+    /// whose ray now misses keeps its surfel.
+    pub fn retraced(&self, mesh: &Mesh, bvh: &Bvh) -> TrainingView {
+        let gbuf = GBuffer::trace(mesh, bvh, &self.camera);
+        let surfels: Vec<Surfel> = self.surfels.iter().zip(&self.pixels).map(|(old, &p)| gbuf.surfels[p as usize].unwrap_or(*old)).collect();
+        let uv = surfels.iter().map(|s| [s.uv.x, s.uv.y]).collect();
+        TrainingView { surfels, uv, ..self.clone() }
+    }
+
     pub fn is_empty(&self) -> bool {
         self.pixels.is_empty()
     }

@@ -52,13 +52,17 @@ pub struct SettingOverrides {
     /// Iterations of the geometry pass (when the geometry is reconstructed).
     #[arg(long)]
     pub geometry_iterations: Option<usize>,
+    /// Move the vertices in the material pass too, through the shading normal (Monte Carlo
+    /// training only; docs/geometry.md).
+    #[arg(long)]
+    pub refine_geometry: bool,
 }
 
 impl SettingOverrides {
     /// The fit settings: the defaults, the training mode (`None` = auto, which starts from
     /// split-sum and is decided by the job), then each option given.
     pub fn fit_config(&self, fixed_mode: Option<ShadingMode>) -> FitConfig {
-        let mut fit = FitConfig { mode: fixed_mode.unwrap_or(ShadingMode::SplitSum), denoise: self.denoise, ..FitConfig::default() };
+        let mut fit = FitConfig { mode: fixed_mode.unwrap_or(ShadingMode::SplitSum), denoise: self.denoise, refine_geometry: self.refine_geometry, ..FitConfig::default() };
         let set = |slot: &mut f64, v: Option<f64>| if let Some(v) = v { *slot = v };
         if let Some(v) = self.spp { fit.spp = v; }
         if let Some(v) = self.iterations { fit.iterations = v; }

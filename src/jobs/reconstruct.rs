@@ -310,7 +310,16 @@ pub fn run_prepared(prepared: &Prepared, views: Vec<TrainingView>, opts: &Recons
     let t = Instant::now();
     let textures = fit.params.textures()?;
     let light = fit.params.light_cube()?;
-    atomic_write::replace_dir(&opts.out.join("model"), |d| write_model(d, &prepared.atlas.mesh, &textures))?;
+    // With vertex refinement the model and the evaluation are the moved mesh.
+    let refined = fit.refined_mesh().map(|m| {
+        let bvh = Arc::new(Bvh::build(&m));
+        (m, bvh)
+    });
+    let (mesh, bvh) = match &refined {
+        Some((m, b)) => (m, b),
+        None => (&prepared.atlas.mesh, &prepared.bvh),
+    };
+    atomic_write::replace_dir(&opts.out.join("model"), |d| write_model(d, mesh, &textures))?;
     atomic_write::replace_dir(&opts.out.join("light"), |d| write_light(d, &light))?;
     stages.push(("export".to_string(), t.elapsed().as_secs_f64()));
 
@@ -332,7 +341,7 @@ pub fn run_prepared(prepared: &Prepared, views: Vec<TrainingView>, opts: &Recons
         train_view_stride: 10,
         max_test_views: opts.eval_test_views,
     };
-    let evaluated = evaluate(&prepared.dataset, &prepared.atlas.mesh, &prepared.bvh, &textures, &light, &test_probes, &settings)?;
+    let evaluated = evaluate(&prepared.dataset, mesh, bvh, &textures, &light, &test_probes, &settings)?;
     atomic_write::replace_dir(&opts.out.join("renders"), |d| {
         for (name, img) in &evaluated.val_renders {
             write_render(d, name, img)?;

@@ -8,6 +8,14 @@
 //!   ∂S/∂ρ = (∂D/∂α · G + D · ∂G/∂α) / (4 n·wo) · 2ρ   (0 below the 0.08 floor and from 1 up;
 //!   at the floor itself the slope from above, the side the optimiser's clamp leaves open);
 //!   ∂spec_c/∂kd_c = S (1 − w) m,   ∂spec_c/∂m = S (1 − w)(kd_c − 0.04).
+//!
+//! And w.r.t. the shading normal n, through the three cosines co = n·wo, ci = n·wi, ch = n·h with
+//! the directions (and so h and w = (1 − wo·h)⁵) held fixed:
+//!   ∂D/∂ch = −4 D ch (α² − 1) / d   (0 where ch is clamped to [0, 1]);
+//!   ∂Λ/∂c = −α² / (2 c³ √(1 + α² tan²θ))   (0 where c is clamped to [ε, 1 − ε]);
+//!   ∂S/∂co = (D ∂G/∂co − S · 4) / (4 co),  ∂S/∂ci = D ∂G/∂ci / (4 co),  ∂S/∂ch = ∂D/∂ch G / (4 co),
+//!   with ∂G/∂c = −G² ∂Λ/∂c; so ∂S/∂n = ∂S/∂co wo + ∂S/∂ci wi + ∂S/∂ch h. Lambert's clamped ci
+//!   gives ∂/∂n = wi inside the clamp, 0 outside.
 
 use glam::DVec3;
 
@@ -17,19 +25,31 @@ fn clamp_cos(c: f64) -> f64 {
     c.clamp(COS_EPS as f64, 1.0 - COS_EPS as f64)
 }
 
-/// Smith Λ and ∂Λ/∂α for a cosine (clamped as `brdf::lambda_ggx`).
-fn lambda_and_grad(cos: f64, alpha: f64) -> (f64, f64) {
+/// Smith Λ, ∂Λ/∂α and ∂Λ/∂cos for a cosine (clamped as `brdf::lambda_ggx`).
+fn lambda_and_grads(cos: f64, alpha: f64) -> (f64, f64, f64) {
     let c = clamp_cos(cos);
     let tan2 = (1.0 - c) * (1.0 + c) / (c * c);
     let root = (1.0 + alpha * alpha * tan2).sqrt();
-    (0.5 * (root - 1.0), 0.5 * alpha * tan2 / root)
+    let dcos = if c == cos { -alpha * alpha / (2.0 * c * c * c * root) } else { 0.0 };
+    (0.5 * (root - 1.0), 0.5 * alpha * tan2 / root, dcos)
 }
 
-/// The Fresnel-free lobe S at roughness ρ and ∂S/∂ρ, for local unit directions (n = +z).
-/// Zero (with zero derivative) unless both directions are above the surface.
-pub fn lobe_and_roughness_grad(wo: DVec3, wi: DVec3, roughness: f64) -> (f64, f64) {
-    if wo.z <= 0.0 || wi.z <= 0.0 {
-        return (0.0, 0.0);
+/// The Fresnel-free lobe S and its derivatives, from the cosines of a configuration.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct LobeGrad {
+    pub value: f64,
+    /// ∂S/∂roughness.
+    pub roughness: f64,
+    /// ∂S/∂(n·wo), ∂S/∂(n·wi), ∂S/∂(n·h) with the directions fixed.
+    pub cos: [f64; 3],
+}
+
+/// The lobe at cosines `cos_o` = n·wo, `cos_i` = n·wi, `cos_h` = n·h (h the half vector of the
+/// unit directions) and roughness ρ, with its derivatives. Zero (with zero derivatives) unless
+/// both cosines are positive.
+pub fn lobe_grad(cos_o: f64, cos_i: f64, cos_h: f64, roughness: f64) -> LobeGrad {
+    if cos_o <= 0.0 || cos_i <= 0.0 {
+        return LobeGrad::default();
     }
     let floor = MIN_ROUGHNESS as f64;
     let (r, dr) = if roughness.is_nan() || roughness < floor {
@@ -40,20 +60,38 @@ pub fn lobe_and_roughness_grad(wo: DVec3, wi: DVec3, roughness: f64) -> (f64, f6
         (roughness, 1.0)
     };
     let alpha = r * r;
-    let h = (wo + wi).normalize();
-    let c = h.z.clamp(0.0, 1.0);
+    let c = cos_h.clamp(0.0, 1.0);
     let a2 = alpha * alpha;
     let d = a2 * c * c + (1.0 - c) * (1.0 + c);
     let ndf = a2 / (std::f64::consts::PI * d * d);
     let dndf = ndf * (2.0 / alpha) * (1.0 - 2.0 * a2 * c * c / d);
-    let (lo, dlo) = lambda_and_grad(wo.z, alpha);
-    let (li, dli) = lambda_and_grad(wi.z, alpha);
+    let (lo, dlo, dlo_c) = lambda_and_grads(cos_o, alpha);
+    let (li, dli, dli_c) = lambda_and_grads(cos_i, alpha);
     let g = 1.0 / (1.0 + lo + li);
     let dg = -g * g * (dlo + dli);
-    let denom = 4.0 * clamp_cos(wo.z);
+    let clamped_o = clamp_cos(cos_o);
+    let denom = 4.0 * clamped_o;
     let s = ndf * g / denom;
     let ds_dalpha = (dndf * g + ndf * dg) / denom;
-    (s, ds_dalpha * 2.0 * r * dr)
+    let dndf_c = if c == cos_h { -4.0 * ndf * c * (a2 - 1.0) / d } else { 0.0 };
+    let ddenom_o = if clamped_o == cos_o { 4.0 } else { 0.0 };
+    let cos = [(ndf * -g * g * dlo_c - s * ddenom_o) / denom, ndf * -g * g * dli_c / denom, dndf_c * g / denom];
+    LobeGrad { value: s, roughness: ds_dalpha * 2.0 * r * dr, cos }
+}
+
+/// The Fresnel-free lobe S at roughness ρ and ∂S/∂ρ, for local unit directions (n = +z).
+/// Zero (with zero derivative) unless both directions are above the surface.
+pub fn lobe_and_roughness_grad(wo: DVec3, wi: DVec3, roughness: f64) -> (f64, f64) {
+    let h = (wo + wi).normalize();
+    let l = lobe_grad(wo.z, wi.z, h.z, roughness);
+    (l.value, l.roughness)
+}
+
+/// Lambert's clamped cosine max(ε, min(c, 1 − ε)) as the f64 renderer clamps it, and its
+/// derivative in c.
+pub fn clamped_cos_grad(c: f64) -> (f64, f64) {
+    let v = clamp_cos(c);
+    (v, if v == c { 1.0 } else { 0.0 })
 }
 
 /// Schlick's weight w = (1 − wo·h)⁵ for the half vector of `wo`, `wi`.
@@ -97,6 +135,54 @@ mod tests {
                 assert!((ours - spec[c] as f64).abs() <= 5e-3 * ours.max(1e-6), "channel {c}: {ours} vs {}", spec[c]);
             }
         }
+    }
+
+    #[test]
+    fn normal_gradient_matches_central_differences() {
+        // Random normals around +z (some near grazing for wo or wi), fixed directions: S as a
+        // function of the normal through its three cosines against central differences.
+        let mut rng = crate::rng::Sampler::from_seed(9);
+        let lobe_at = |n: DVec3, wo: DVec3, wi: DVec3, r: f64| {
+            let h = (wo + wi).normalize();
+            lobe_grad(n.dot(wo), n.dot(wi), n.dot(h), r)
+        };
+        let mut checked = 0;
+        for k in 0..400 {
+            let mut u = || rng.next_f32() as f64;
+            let (wo, wi) = (dir(1.5 * u(), 6.3 * u()), dir(1.5 * u(), 6.3 * u()));
+            let tilt = if k % 4 == 0 { 0.6 } else { 0.15 };
+            let n = dir(tilt * u(), 6.3 * u());
+            let r = 0.1 + 0.85 * u();
+            let l = lobe_at(n, wo, wi, r);
+            let h = (wo + wi).normalize();
+            let g = l.cos[0] * wo + l.cos[1] * wi + l.cos[2] * h;
+            let e = 1e-7;
+            let fd = DVec3::new(
+                (lobe_at(n + DVec3::X * e, wo, wi, r).value - lobe_at(n - DVec3::X * e, wo, wi, r).value) / (2.0 * e),
+                (lobe_at(n + DVec3::Y * e, wo, wi, r).value - lobe_at(n - DVec3::Y * e, wo, wi, r).value) / (2.0 * e),
+                (lobe_at(n + DVec3::Z * e, wo, wi, r).value - lobe_at(n - DVec3::Z * e, wo, wi, r).value) / (2.0 * e),
+            );
+            // Skip configurations within FD reach of a clamp's kink.
+            let cs = [n.dot(wo), n.dot(wi), n.dot(h)];
+            if cs.iter().any(|c| c.abs() < 1e-5 || (c - 1.0).abs() < 1e-5) {
+                continue;
+            }
+            checked += (l.value > 0.0) as usize;
+            assert!((g - fd).length() <= 1e-4 * fd.length().max(1e-3 * l.value.max(1e-6)), "case {k}: n {n} wo {wo} wi {wi} r {r}: {g} vs {fd} (S {})", l.value);
+        }
+        assert!(checked > 100, "{checked}");
+        // Grazing: n·wo = 0.02, n·wi = 0.03.
+        let (wo, wi) = (dir(1.55, 0.0), dir(1.54, 2.0));
+        let n = DVec3::Z;
+        let l = lobe_at(n, wo, wi, 0.3);
+        let h = (wo + wi).normalize();
+        let g = l.cos[0] * wo + l.cos[1] * wi + l.cos[2] * h;
+        let e = 1e-8;
+        let fd_x = (lobe_at(n + DVec3::X * e, wo, wi, 0.3).value - lobe_at(n - DVec3::X * e, wo, wi, 0.3).value) / (2.0 * e);
+        assert!((g.x - fd_x).abs() <= 1e-4 * fd_x.abs(), "{} vs {fd_x}", g.x);
+        // The cosine clamps: no gradient outside, unit slope inside.
+        assert_eq!(clamped_cos_grad(0.5), (0.5, 1.0));
+        assert_eq!(clamped_cos_grad(-0.2).1, 0.0);
     }
 
     #[test]

@@ -104,6 +104,16 @@ impl UniformAdam {
         UniformAdam { lr, beta1: 0.9, beta2: 0.999, eps: 1e-8, m: vec![[0.0; 3]; n], v: vec![[0.0; 3]; n], t: 0 }
     }
 
+    /// First and second moments and the step count (for checkpoints).
+    pub fn state(&self) -> (&[[f64; 3]], &[[f64; 3]], i32) {
+        (&self.m, &self.v, self.t)
+    }
+
+    /// Restores [`UniformAdam::state`].
+    pub fn restore(&mut self, m: Vec<[f64; 3]>, v: Vec<[f64; 3]>, t: i32) {
+        (self.m, self.v, self.t) = (m, v, t);
+    }
+
     /// The update to add to u for gradient `g` (on u) with learning-rate factor `scale`.
     pub fn step(&mut self, g: &[[f64; 3]], scale: f64) -> Vec<[f64; 3]> {
         self.t += 1;

@@ -5,6 +5,7 @@
 
 pub mod adam;
 pub mod gradcheck;
+pub mod guarded_step;
 pub mod large_steps;
 pub mod laplacian;
 pub mod light_balance;

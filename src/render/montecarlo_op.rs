@@ -15,8 +15,18 @@
 //! pixel is differentiated as for light samples.
 //!
 //! Inputs (all f32 or all f64): `kd` [N, 3], `ks` [N, 3] = (occlusion, roughness, metallic),
-//! `light` [6, R, R, 3]. Output [N, 6]: demodulated diffuse light Σ L·cos/π·w (multiply by
-//! kd(1−m)) and specular radiance, each averaged over `spp`. Misses: zero, no gradient.
+//! `light` [6, R, R, 3], and optionally `normal` [N, 3] (see below). Output [N, 6]: demodulated
+//! diffuse light Σ L·cos/π·w (multiply by kd(1−m)) and specular radiance, each averaged over
+//! `spp`. Misses: zero, no gradient.
+//!
+//! The optional shading normal (world space, any length: it is normalised here, and flipped to the
+//! side of the prepare-time normal, which faces the camera) lets the material pass move vertices
+//! (`fit::vertex_refinement`). Each sample's world direction, its radiance, visibility, pdf and MIS
+//! weight stay as drawn with the prepare-time normal; only the BRDF·cos term sees the new normal,
+//! through n·wi (Lambert), n·wo, n·wi and n·h (GGX D and G, the 1/(4 n·wo) factor); Fresnel's
+//! wo·h does not involve n. Its derivatives are `brdf_grad::lobe_grad`'s. Without the input the
+//! operator is the three-input one, unchanged; with it, at the prepare-time normal the forward
+//! agrees with it to rounding.
 
 use std::sync::Arc;
 
@@ -27,7 +37,8 @@ use rayon::prelude::*;
 use crate::light::sampler::LightSampler;
 use crate::light::CubeMap;
 use crate::material::brdf::clamp_cos;
-use crate::material::brdf_grad::{f0, lobe_and_roughness_grad, schlick_weight};
+use crate::material::brdf_grad::{clamped_cos_grad, f0, lobe_and_roughness_grad, lobe_grad, schlick_weight};
+use crate::math::Frame;
 use crate::material::SurfaceParams;
 use crate::optim::tape::{apply, scatter_add_banded, Kernel, Real};
 use crate::render::gbuffer::Surfel;
@@ -89,6 +100,8 @@ impl Stored {
 pub struct McShading {
     /// Per pixel: local outgoing direction (None for a miss) and its sample range.
     wo_l: Arc<[Option<[f32; 3]>]>,
+    /// Per pixel: the shading normal the samples' local frame was built on (zero for a miss).
+    normals: Arc<[[f32; 3]]>,
     /// Per pixel: its samples' range in its chunk's list (pixel p is in chunk p / PREPARE_CHUNK).
     ranges: Arc<[(u32, u32)]>,
     /// One sample list per chunk of pixels, kept as drawn (no concatenated copy).
@@ -150,7 +163,8 @@ impl McShading {
         }
         ray_count::record(rays);
         let surface_samples = chunks.iter().flatten().filter(|s| matches!(s.source, Source::Surface(_))).count();
-        McShading { wo_l: wo_l.into(), ranges: ranges.into(), chunks: chunks.into(), light_res: light.res, specular: settings.effects.specular, rays, surface_samples }
+        let normals = pixels.iter().map(|p| p.map_or([0.0; 3], |p| p.surfel.normal.to_array())).collect();
+        McShading { wo_l: wo_l.into(), normals, ranges: ranges.into(), chunks: chunks.into(), light_res: light.res, specular: settings.effects.specular, rays, surface_samples }
     }
 
     pub fn len(&self) -> usize {
@@ -168,17 +182,69 @@ impl McShading {
 
     fn check_shapes(&self, shapes: &[&[usize]]) -> Result<()> {
         let (n, r) = (self.len(), self.light_res);
-        if shapes.len() == 3 && shapes[0] == [n, 3] && shapes[1] == [n, 3] && shapes[2] == [6, r, r, 3] {
+        let normal_ok = shapes.len() == 3 || (shapes.len() == 4 && shapes[3] == [n, 3]);
+        if normal_ok && shapes[0] == [n, 3] && shapes[1] == [n, 3] && shapes[2] == [6, r, r, 3] {
             Ok(())
         } else {
             Err(candle_core::Error::Msg(format!(
-                "Monte Carlo shading: expected kd [{n}, 3], ks [{n}, 3] and light [6, {r}, {r}, 3], got {shapes:?}"
+                "Monte Carlo shading: expected kd [{n}, 3], ks [{n}, 3], light [6, {r}, {r}, 3] and optionally normal [{n}, 3], got {shapes:?}"
             )))
+        }
+    }
+
+    /// Pixel `p`'s shading geometry: its local outgoing direction and, with a normal input, the
+    /// normal in the prepare-time frame (None for a miss).
+    fn geometry<T: Real>(&self, p: usize, normal: Option<&[T]>) -> Option<PixelGeometry> {
+        let wo = self.wo_l[p]?;
+        let wo = DVec3::new(wo[0] as f64, wo[1] as f64, wo[2] as f64);
+        let tilt = normal.map(|n| {
+            let frame = Frame::from_normal(glam::Vec3::from_array(self.normals[p]));
+            let axes = [frame.s, frame.t, frame.n].map(|a| a.as_dvec3());
+            let v = DVec3::new(n[3 * p].to_f64(), n[3 * p + 1].to_f64(), n[3 * p + 2].to_f64());
+            let len = v.length();
+            let unit = if len > 0.0 { v / len } else { axes[2] };
+            // The prepare-time normal faces the camera; the input follows it to that side.
+            let sign = if unit.dot(axes[2]) < 0.0 { -1.0 } else { 1.0 };
+            let m = sign * DVec3::new(unit.dot(axes[0]), unit.dot(axes[1]), unit.dot(axes[2]));
+            Tilt { m, axes, unit, len, sign }
+        });
+        Some(PixelGeometry { wo, tilt })
+    }
+}
+
+/// The shading normal given as input, in the prepare-time local frame, with what its adjoint
+/// needs to go back to the world input.
+struct Tilt {
+    /// Unit normal in the local frame (sign-corrected).
+    m: DVec3,
+    /// The prepare-time frame's axes (s, t, n) in world space.
+    axes: [DVec3; 3],
+    /// The input normalised, its length, and the flip applied.
+    unit: DVec3,
+    len: f64,
+    sign: f64,
+}
+
+impl Tilt {
+    /// ∂L/∂(input normal) from ∂L/∂m (local).
+    fn to_input(&self, g_m: DVec3) -> DVec3 {
+        let g_unit = self.sign * (self.axes[0] * g_m.x + self.axes[1] * g_m.y + self.axes[2] * g_m.z);
+        if self.len > 0.0 {
+            (g_unit - self.unit * self.unit.dot(g_unit)) / self.len
+        } else {
+            DVec3::ZERO
         }
     }
 }
 
+struct PixelGeometry {
+    wo: DVec3,
+    /// None: the prepare-time normal, +z (the three-input operator).
+    tilt: Option<Tilt>,
+}
+
 /// Everything about one sample that both passes use.
+#[derive(Default)]
 struct SampleEval {
     /// cos/π · weight (the diffuse light's factor).
     diffuse: f64,
@@ -186,17 +252,34 @@ struct SampleEval {
     lobe: f64,
     dlobe: f64,
     schlick: f64,
+    /// With a normal input: ∂diffuse/∂m and ∂lobe/∂m (local, weight included).
+    ddiffuse_dm: DVec3,
+    dlobe_dm: DVec3,
 }
 
-fn eval_sample(wo_l: DVec3, s: &Stored, roughness: f64, specular: bool) -> SampleEval {
+fn eval_sample(px: &PixelGeometry, s: &Stored, roughness: f64, specular: bool) -> SampleEval {
+    let wo_l = px.wo;
     let wi = DVec3::new(s.wi_l[0] as f64, s.wi_l[1] as f64, s.wi_l[2] as f64);
     let w = s.weight as f64;
-    let diffuse = clamp_cos(s.wi_l[2]) as f64 / std::f64::consts::PI * w;
+    let Some(tilt) = &px.tilt else {
+        let diffuse = clamp_cos(s.wi_l[2]) as f64 / std::f64::consts::PI * w;
+        if !specular {
+            return SampleEval { diffuse, ..SampleEval::default() };
+        }
+        let (lobe, dlobe) = lobe_and_roughness_grad(wo_l, wi, roughness);
+        return SampleEval { diffuse, lobe: lobe * w, dlobe: dlobe * w, schlick: schlick_weight(wo_l, wi), ..SampleEval::default() };
+    };
+    let m = tilt.m;
+    let (cos_i, dcos_i) = clamped_cos_grad(m.dot(wi));
+    let k = w / std::f64::consts::PI;
+    let (diffuse, ddiffuse_dm) = (cos_i * k, wi * (dcos_i * k));
     if !specular {
-        return SampleEval { diffuse, lobe: 0.0, dlobe: 0.0, schlick: 0.0 };
+        return SampleEval { diffuse, ddiffuse_dm, ..SampleEval::default() };
     }
-    let (lobe, dlobe) = lobe_and_roughness_grad(wo_l, wi, roughness);
-    SampleEval { diffuse, lobe: lobe * w, dlobe: dlobe * w, schlick: schlick_weight(wo_l, wi) }
+    let h = (wo_l + wi).normalize();
+    let l = lobe_grad(m.dot(wo_l), m.dot(wi), m.dot(h), roughness);
+    let dlobe_dm = (wo_l * l.cos[0] + wi * l.cos[1] + h * l.cos[2]) * w;
+    SampleEval { diffuse, lobe: l.value * w, dlobe: l.roughness * w, schlick: schlick_weight(wo_l, wi), ddiffuse_dm, dlobe_dm }
 }
 
 fn rgb<T: Real>(x: &[T], i: usize) -> [f64; 3] {
@@ -214,15 +297,14 @@ impl Kernel for McShading {
     }
 
     fn forward<T: Real>(&self, x: &[&[T]], _shapes: &[&[usize]], out: &mut [T]) -> Result<()> {
-        let (kd, ks, light) = (x[0], x[1], x[2]);
+        let (kd, ks, light, normal) = (x[0], x[1], x[2], x.get(3).copied());
         out.par_chunks_mut(6).enumerate().for_each(|(p, o)| {
-            let Some(wo) = self.wo_l[p] else { return };
-            let wo = DVec3::new(wo[0] as f64, wo[1] as f64, wo[2] as f64);
+            let Some(px) = self.geometry(p, normal) else { return };
             let (k, rough, metal) = (rgb(kd, p), ks[3 * p + 1].to_f64(), ks[3 * p + 2].to_f64());
             let f0 = f0(k, metal);
             let mut acc = [0.0f64; 6];
             for s in self.pixel_samples(p) {
-                let e = eval_sample(wo, s, rough, self.specular);
+                let e = eval_sample(&px, s, rough, self.specular);
                 let l = s.radiance(light);
                 for c in 0..3 {
                     acc[c] += e.diffuse * l[c];
@@ -237,24 +319,24 @@ impl Kernel for McShading {
     }
 
     fn backward<T: Real>(&self, x: &[&[T]], _shapes: &[&[usize]], g_out: &[T], grads: &mut [Option<&mut [T]>]) -> Result<()> {
-        let (kd, ks, light) = (x[0], x[1], x[2]);
-        // (local wo, kd, roughness, metallic, output gradient) of a covered pixel.
-        type PixelData = (DVec3, [f64; 3], f64, f64, [f64; 6]);
+        let (kd, ks, light, normal) = (x[0], x[1], x[2], x.get(3).copied());
+        // (geometry, kd, roughness, metallic, output gradient) of a covered pixel.
+        type PixelData = (PixelGeometry, [f64; 3], f64, f64, [f64; 6]);
         let pixel = |p: usize| -> Option<PixelData> {
-            let wo = self.wo_l[p]?;
+            let px = self.geometry(p, normal)?;
             let g: [f64; 6] = std::array::from_fn(|c| g_out[6 * p + c].to_f64());
-            Some((DVec3::new(wo[0] as f64, wo[1] as f64, wo[2] as f64), rgb(kd, p), ks[3 * p + 1].to_f64(), ks[3 * p + 2].to_f64(), g))
+            Some((px, rgb(kd, p), ks[3 * p + 1].to_f64(), ks[3 * p + 2].to_f64(), g))
         };
         if self.specular && (grads[0].is_some() || grads[1].is_some()) {
             // Material gradients: one pass over each pixel's samples.
             let per_pixel: Vec<([f64; 3], f64, f64)> = (0..self.len())
                 .into_par_iter()
                 .map(|p| {
-                    let Some((wo, k, rough, metal, g)) = pixel(p) else { return ([0.0; 3], 0.0, 0.0) };
+                    let Some((px, k, rough, metal, g)) = pixel(p) else { return ([0.0; 3], 0.0, 0.0) };
                     let f0 = f0(k, metal);
                     let (mut gkd, mut gr, mut gm) = ([0.0f64; 3], 0.0, 0.0);
                     for s in self.pixel_samples(p) {
-                        let e = eval_sample(wo, s, rough, true);
+                        let e = eval_sample(&px, s, rough, true);
                         let l = s.radiance(light);
                         for c in 0..3 {
                             let gs = g[3 + c] * l[c];
@@ -284,11 +366,11 @@ impl Kernel for McShading {
         if let Some(glight) = grads[2].as_deref_mut() {
             let mut acc = vec![0.0f64; glight.len()];
             scatter_add_banded(&mut acc, self.len(), |p, sink| {
-                let Some((wo, k, rough, metal, g)) = pixel(p) else { return };
+                let Some((px, k, rough, metal, g)) = pixel(p) else { return };
                 let f0 = f0(k, metal);
                 for s in self.pixel_samples(p) {
                     let Source::Texel(texel) = s.source else { continue };
-                    let e = eval_sample(wo, s, rough, self.specular);
+                    let e = eval_sample(&px, s, rough, self.specular);
                     for c in 0..3 {
                         let spec = (f0[c] * (1.0 - e.schlick) + e.schlick) * e.lobe;
                         sink.add(3 * texel as usize + c, g[c] * e.diffuse + g[3 + c] * spec);
@@ -297,6 +379,29 @@ impl Kernel for McShading {
             });
             glight.par_iter_mut().zip(acc.par_iter()).for_each(|(a, b)| *a += T::from_f64(*b));
         }
+        if let Some(gn) = grads.get_mut(3).and_then(|g| g.as_deref_mut()) {
+            // Normal gradient: each sample's BRDF·cos term through n (directions fixed).
+            gn.par_chunks_mut(3).enumerate().for_each(|(p, o)| {
+                let Some((px, k, rough, metal, g)) = pixel(p) else { return };
+                let Some(tilt) = &px.tilt else { return };
+                let f0 = f0(k, metal);
+                let mut g_m = DVec3::ZERO;
+                for s in self.pixel_samples(p) {
+                    let e = eval_sample(&px, s, rough, self.specular);
+                    let l = s.radiance(light);
+                    let (mut gd, mut gs) = (0.0, 0.0);
+                    for c in 0..3 {
+                        gd += g[c] * l[c];
+                        gs += g[3 + c] * (f0[c] * (1.0 - e.schlick) + e.schlick) * l[c];
+                    }
+                    g_m += e.ddiffuse_dm * gd + e.dlobe_dm * gs;
+                }
+                let g_n = tilt.to_input(g_m);
+                for c in 0..3 {
+                    o[c] += T::from_f64(g_n[c]);
+                }
+            });
+        }
         Ok(())
     }
 }
@@ -304,4 +409,9 @@ impl Kernel for McShading {
 /// Demodulated diffuse light and specular radiance [N, 6] on the tape.
 pub fn shade_mc(op: &McShading, kd: &Tensor, ks: &Tensor, light: &Tensor) -> Result<Tensor> {
     apply(op.clone(), &[kd, ks, light])
+}
+
+/// As [`shade_mc`] with the shading normal [N, 3] as an input too (see the module doc).
+pub fn shade_mc_with_normal(op: &McShading, kd: &Tensor, ks: &Tensor, light: &Tensor, normal: &Tensor) -> Result<Tensor> {
+    apply(op.clone(), &[kd, ks, light, normal])
 }

@@ -1,5 +1,6 @@
 //! The guard between an optimiser's proposed vertex move and the mesh: no step may flip a triangle
-//! or shrink one to a degenerate sliver, because such a mesh must never reach the BVH.
+//! or shrink one to a degenerate sliver, because such a mesh must never reach the BVH. Shared by
+//! the geometry pass and the material pass's vertex refinement.
 //!
 //! Positions are stepped in Large Steps' u = (I + λL)x (`optim::large_steps`). Given the current
 //! x and u and a proposed step du, [`guard_step`] returns the positions to take, trying in turn:
@@ -16,7 +17,7 @@
 
 use glam::DVec3;
 
-use crate::optim::large_steps::LargeSteps;
+use super::large_steps::LargeSteps;
 
 /// Holding back is for isolated slivers: when more than this share of the vertices would have to
 /// stay, the step as a whole is too long and it is halved instead. One vertex in a hundred is
@@ -26,6 +27,13 @@ const MAX_HELD_SHARE: f64 = 0.01;
 
 /// Halvings tried after the full step: down to 1/256 of it.
 const HALVINGS: usize = 8;
+
+/// Doubled triangle area, squared, below which a triangle of a mesh with mean edge `edge` counts
+/// as degenerate: an area of 1e-6 of the edge squared, far below any triangle a remesh or a step
+/// should leave, far above f32 round-off of the positions.
+pub fn degenerate_area2(edge: f64) -> f64 {
+    (1e-6 * edge * edge).powi(2)
+}
 
 /// Triangles the move from `a` to `b` breaks: whose orientation reversed, or whose area fell below
 /// `min_area2` (twice the area, squared). A triangle already that small in `a` (a remesh can
