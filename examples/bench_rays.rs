@@ -7,6 +7,9 @@
 //! (closest hit and any hit). Compares obvhs build presets for the CWBVH `Bvh` uses, its node
 //! tests (AVX-512 and AVX2 8-wide where the CPU has them, `Bvh`'s default being the widest, against
 //! obvhs' own SSE test), and obvhs' binary BVH2 with its own traversal as the alternative structure. All rayon-parallel.
+//! Then tinybvh's layouts on the same rays, one thread, taking turns with ours ([`tinybvh`]); for
+//! its 8-wide BVH8_CPU layout build with `RUSTFLAGS="-C target-feature=+avx2,+fma"`. With
+//! `--features embree` (needs Debian `libembree-dev`), Intel Embree 3 the same way ([`embree`]).
 
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
@@ -26,6 +29,14 @@ use reconstruct::geometry::ground_truth::load_ground_truth;
 use reconstruct::geometry::Mesh;
 use reconstruct::render::gbuffer::GBuffer;
 use reconstruct::scene::camera::Camera;
+
+#[cfg(feature = "embree")]
+#[path = "bench_rays/embree.rs"]
+mod embree;
+#[path = "bench_rays/side_by_side.rs"]
+mod side_by_side;
+#[path = "bench_rays/tinybvh.rs"]
+mod tinybvh;
 
 fn cameras(size: usize) -> Vec<Camera> {
     // Eight views on a ring 4.03 units from the origin, 30° above the plate (like the dataset).
@@ -211,5 +222,8 @@ fn main() -> Result<()> {
     for row in cpu_rows {
         println!("{row}");
     }
+    tinybvh::compare(&mesh, &reference_bvh, coherent_subset, &secondary, &cpu_rates);
+    #[cfg(feature = "embree")]
+    embree::compare(&mesh, &reference_bvh, coherent_subset, &secondary, &cpu_rates);
     Ok(())
 }
