@@ -110,8 +110,6 @@ pub fn compare(mesh: &Mesh, ours: &Bvh, coherent: &[(Vec3, Vec3)], incoherent: &
             return;
         }
     };
-    #[cfg_attr(not(target_feature = "avx2"), allow(unused_mut))]
-    let mut alternatives = vec![alternative("tinybvh BVH (Build)", &plain), alternative("tinybvh BVH (BuildHQ)", &hq)];
     #[cfg(target_feature = "avx2")]
     let wide = match (build8(false), build8(true)) {
         (Ok(p), Ok(h)) => (p, h),
@@ -120,6 +118,8 @@ pub fn compare(mesh: &Mesh, ours: &Bvh, coherent: &[(Vec3, Vec3)], incoherent: &
             return;
         }
     };
+    #[cfg_attr(not(target_feature = "avx2"), allow(unused_mut))]
+    let mut alternatives = vec![alternative("tinybvh BVH (Build)", &plain), alternative("tinybvh BVH (BuildHQ)", &hq)];
     #[cfg(target_feature = "avx2")]
     alternatives.extend([alternative("tinybvh BVH8_CPU (Build)", &wide.0), alternative("tinybvh BVH8_CPU (BuildHQ)", &wide.1)]);
     #[cfg(not(target_feature = "avx2"))]
