@@ -7,9 +7,10 @@
 //! (closest hit and any hit). Compares obvhs build presets for the CWBVH `Bvh` uses, its node
 //! tests (AVX-512 and AVX2 8-wide where the CPU has them, `Bvh`'s default being the widest, against
 //! obvhs' own SSE test), and obvhs' binary BVH2 with its own traversal as the alternative structure. All rayon-parallel.
-//! Then tinybvh's layouts on the same rays, one thread, taking turns with ours ([`tinybvh`]); for
-//! its 8-wide BVH8_CPU layout build with `RUSTFLAGS="-C target-feature=+avx2,+fma"`. With
-//! `--features embree` (needs Debian `libembree-dev`), Intel Embree 3 the same way ([`embree`]).
+//! With `--features tinybvh`, tinybvh's layouts on the same rays, one thread, taking turns with
+//! ours (`tinybvh`); for its 8-wide BVH8_CPU layout build with
+//! `RUSTFLAGS="-C target-feature=+avx2,+fma"`. With `--features embree` (needs Debian
+//! `libembree-dev`), Intel Embree 3 the same way (`embree`). Both are off by default.
 
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
@@ -33,8 +34,10 @@ use reconstruct::scene::camera::Camera;
 #[cfg(feature = "embree")]
 #[path = "bench_rays/embree.rs"]
 mod embree;
+#[cfg(any(feature = "embree", feature = "tinybvh"))]
 #[path = "bench_rays/side_by_side.rs"]
 mod side_by_side;
+#[cfg(feature = "tinybvh")]
 #[path = "bench_rays/tinybvh.rs"]
 mod tinybvh;
 
@@ -222,6 +225,7 @@ fn main() -> Result<()> {
     for row in cpu_rows {
         println!("{row}");
     }
+    #[cfg(feature = "tinybvh")]
     tinybvh::compare(&mesh, &reference_bvh, coherent_subset, &secondary, &cpu_rates);
     #[cfg(feature = "embree")]
     embree::compare(&mesh, &reference_bvh, coherent_subset, &secondary, &cpu_rates);
