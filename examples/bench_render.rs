@@ -74,10 +74,23 @@ fn time_ms<T>(runs: usize, mut f: impl FnMut() -> T) -> (f64, Option<f64>, T) {
     (median(wall), cpu, last.expect("runs > 0"))
 }
 
+/// How many timed calls give a median steady enough to compare with its neighbours: enough to fill
+/// `budget_ms` of wall time at the cost of one untimed warm-up call, at least 3 and at most 101.
+/// Small frames (a few ms) vary by ±20 % from call to call here; a fixed count of 3 let one slow
+/// call move a cost ratio of the sweep by 0.3.
+fn runs_within<T>(budget_ms: f64, mut f: impl FnMut() -> T) -> usize {
+    let t = Instant::now();
+    std::hint::black_box(f());
+    let once = t.elapsed().as_secs_f64() * 1e3;
+    ((budget_ms / once.max(1e-3)) as usize).clamp(3, 101) | 1
+}
+
 /// One measured setting.
 struct Row {
     stage: String,
     width: usize,
+    /// Pixels the object covers at this resolution: the ones Monte Carlo shades.
+    covered: usize,
     spp: u32,
     bounces: u32,
     ms: f64,
@@ -98,7 +111,7 @@ impl Row {
 
     fn json(&self) -> serde_json::Value {
         json!({
-            "stage": self.stage, "resolution": self.width, "spp": self.spp, "bounces": self.bounces,
+            "stage": self.stage, "resolution": self.width, "covered_pixels": self.covered, "spp": self.spp, "bounces": self.bounces,
             "ms_per_frame": self.ms, "secondary_mrays_per_s": self.secondary_mrays(),
             "cpu_ms_per_frame": self.cpu_ms, "secondary_mrays_per_cpu_s": self.secondary_mrays_per_cpu_s(),
             "primary_rays": self.rays.primary, "shadow_rays": self.rays.shadow, "bounce_rays": self.rays.bounce,
@@ -132,10 +145,10 @@ fn main() -> anyhow::Result<()> {
     let params = gbuf.material_params(&mesh);
     let covered = gbuf.surfels.iter().filter(|s| s.is_some()).count();
     let (g_ms, g_cpu, g) = time_ms(9, || GBuffer::trace(&mesh, &bvh, &camera(256)));
-    rows.push(Row { stage: "gbuffer".into(), width: 256, spp: 1, bounces: 0, ms: g_ms, cpu_ms: g_cpu, rays: g.rays() });
+    rows.push(Row { stage: "gbuffer".into(), width: 256, covered, spp: 1, bounces: 0, ms: g_ms, cpu_ms: g_cpu, rays: g.rays() });
     let (ss, lut) = light.split_sum();
     let (s_ms, s_cpu, _) = time_ms(9, || splitsum::shade(&gbuf, &params, ss, lut, Effects::DIRECT));
-    rows.push(Row { stage: "splitsum".into(), width: 256, spp: 0, bounces: 0, ms: s_ms, cpu_ms: s_cpu, rays: RayCount::ZERO });
+    rows.push(Row { stage: "splitsum".into(), width: 256, covered, spp: 0, bounces: 0, ms: s_ms, cpu_ms: s_cpu, rays: RayCount::ZERO });
     let no_shadows = Effects { shadows: false, specular: true, indirect_bounces: 0 };
     let effects = [("mc_no_shadows", no_shadows), ("mc_direct", Effects::DIRECT), ("mc_bounces", Effects::with_bounces(1)), ("mc_bounces", Effects::with_bounces(3))];
     for spp in [1u32, 4, 16] {
@@ -143,18 +156,21 @@ fn main() -> anyhow::Result<()> {
             let settings = McSettings { spp, seed: 1, effects, ray_epsilon: eps };
             let runs = if spp == 16 { 3 } else { 5 };
             let (ms, cpu_ms, out) = time_ms(runs, || montecarlo::shade(&gbuf, &params, light.sampler(), &scene, &settings, 0));
-            rows.push(Row { stage: stage.into(), width: 256, spp, bounces: effects.indirect_bounces, ms, cpu_ms, rays: out.rays });
+            rows.push(Row { stage: stage.into(), width: 256, covered, spp, bounces: effects.indirect_bounces, ms, cpu_ms, rays: out.rays });
         }
     }
 
-    // Growth sweep: direct light with shadows.
+    // Growth sweep: direct light with shadows. Each setting is timed for about this long, so the
+    // medians of small and large frames are equally steady (about 5 s for the whole sweep).
+    const SWEEP_BUDGET_MS: f64 = 400.0;
     let mut sweep = Vec::new();
     let sweep_row = |res: usize, spp: u32| {
         let g = GBuffer::trace(&mesh, &bvh, &camera(res));
         let p = g.material_params(&mesh);
         let settings = McSettings { spp, seed: 1, effects: Effects::DIRECT, ray_epsilon: eps };
-        let (ms, cpu_ms, out) = time_ms(3, || montecarlo::shade(&g, &p, light.sampler(), &scene, &settings, 0));
-        Row { stage: "sweep_mc_direct".into(), width: res, spp, bounces: 0, ms, cpu_ms, rays: out.rays }
+        let frame = || montecarlo::shade(&g, &p, light.sampler(), &scene, &settings, 0);
+        let (ms, cpu_ms, out) = time_ms(runs_within(SWEEP_BUDGET_MS, frame), frame);
+        Row { stage: "sweep_mc_direct".into(), width: res, covered: g.mask().iter().filter(|&&c| c).count(), spp, bounces: 0, ms, cpu_ms, rays: out.rays }
     };
     let by_resolution: Vec<Row> = [64, 128, 256, 512].into_iter().map(|r| sweep_row(r, 4)).collect();
     let by_spp: Vec<Row> = [1, 2, 4, 8, 16, 32, 64].into_iter().map(|s| sweep_row(128, s)).collect();
@@ -164,7 +180,10 @@ fn main() -> anyhow::Result<()> {
         for (k, r) in series.iter().enumerate() {
             let per_doubling = |cost: &dyn Fn(&Row) -> Option<f64>| -> Option<f64> {
                 let prev = series[..k].last()?;
-                let work = |r: &Row| (r.width * r.width) as f64 * r.spp as f64;
+                // Work is what Monte Carlo shades: covered pixels × samples. The covered share
+                // of the image changes a little with resolution (the outline's pixels), so
+                // width² would misstate the growth between resolutions.
+                let work = |r: &Row| r.covered as f64 * r.spp as f64;
                 Some((cost(r)? / cost(prev)?).powf(1.0 / (work(r) / work(prev)).log2()))
             };
             sweep.push((r, per_doubling(&|r| Some(r.ms)), per_doubling(&|r| r.cpu_ms)));
@@ -191,11 +210,11 @@ fn main() -> anyhow::Result<()> {
         let (mrays, per_cpu) = if r.rays.secondary() > 0 { (format!("{:.2}", r.secondary_mrays()), opt(r.secondary_mrays_per_cpu_s())) } else { ("-".into(), "-".into()) };
         println!("| {} | {} | {} | {:.2} | {} | {} | {} | {} | {mrays} | {per_cpu} |", r.stage, r.spp, r.bounces, r.ms, opt(r.cpu_ms), r.rays.primary, r.rays.shadow, r.rays.bounce);
     }
-    println!("\nCost growth, Monte Carlo with direct light and shadows (the ratio is per doubling of pixels × spp; 2.0 is linear):\n");
-    println!("| resolution | spp | ms / frame | CPU ms / frame | secondary Mrays/s | cost ratio per doubling | in CPU time |");
-    println!("|---:|---:|---:|---:|---:|---:|---:|");
+    println!("\nCost growth, Monte Carlo with direct light and shadows (the ratio is per doubling of covered pixels × spp; 2.0 is linear):\n");
+    println!("| resolution | covered pixels | spp | ms / frame | CPU ms / frame | secondary Mrays/s | cost ratio per doubling | in CPU time |");
+    println!("|---:|---:|---:|---:|---:|---:|---:|---:|");
     for (r, ratio, cpu_ratio) in &sweep {
-        println!("| {0}² | {1} | {2:.2} | {3} | {4:.2} | {5} | {6} |", r.width, r.spp, r.ms, opt(r.cpu_ms), r.secondary_mrays(), opt(*ratio), opt(*cpu_ratio));
+        println!("| {0}² | {1} | {2} | {3:.2} | {4} | {5:.2} | {6} | {7} |", r.width, r.covered, r.spp, r.ms, opt(r.cpu_ms), r.secondary_mrays(), opt(*ratio), opt(*cpu_ratio));
     }
     println!("\nRays are counted by the renderer (render::ray_count): shadow rays are any-hit occlusion tests, bounce rays the closest-hit rays of interreflection paths.");
     Ok(())
