@@ -85,6 +85,11 @@ fn runs_within<T>(budget_ms: f64, mut f: impl FnMut() -> T) -> usize {
     ((budget_ms / once.max(1e-3)) as usize).clamp(3, 101) | 1
 }
 
+/// Pixels whose primary ray hit the object: the ones Monte Carlo shades.
+fn covered_pixels(g: &GBuffer) -> usize {
+    g.surfels.iter().flatten().count()
+}
+
 /// One measured setting.
 struct Row {
     stage: String,
@@ -143,7 +148,7 @@ fn main() -> anyhow::Result<()> {
     // Fixed 256² frame: every stage.
     let gbuf = GBuffer::trace(&mesh, &bvh, &camera(256));
     let params = gbuf.material_params(&mesh);
-    let covered = gbuf.surfels.iter().filter(|s| s.is_some()).count();
+    let covered = covered_pixels(&gbuf);
     let (g_ms, g_cpu, g) = time_ms(9, || GBuffer::trace(&mesh, &bvh, &camera(256)));
     rows.push(Row { stage: "gbuffer".into(), width: 256, covered, spp: 1, bounces: 0, ms: g_ms, cpu_ms: g_cpu, rays: g.rays() });
     let (ss, lut) = light.split_sum();
@@ -170,7 +175,7 @@ fn main() -> anyhow::Result<()> {
         let settings = McSettings { spp, seed: 1, effects: Effects::DIRECT, ray_epsilon: eps };
         let frame = || montecarlo::shade(&g, &p, light.sampler(), &scene, &settings, 0);
         let (ms, cpu_ms, out) = time_ms(runs_within(SWEEP_BUDGET_MS, frame), frame);
-        Row { stage: "sweep_mc_direct".into(), width: res, covered: g.mask().iter().filter(|&&c| c).count(), spp, bounces: 0, ms, cpu_ms, rays: out.rays }
+        Row { stage: "sweep_mc_direct".into(), width: res, covered: covered_pixels(&g), spp, bounces: 0, ms, cpu_ms, rays: out.rays }
     };
     let by_resolution: Vec<Row> = [64, 128, 256, 512].into_iter().map(|r| sweep_row(r, 4)).collect();
     let by_spp: Vec<Row> = [1, 2, 4, 8, 16, 32, 64].into_iter().map(|s| sweep_row(128, s)).collect();
