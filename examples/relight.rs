@@ -66,7 +66,7 @@ fn main() -> Result<()> {
     let report = read_report(&args.run)?;
     let model = args.run.join("model");
     let mesh = load_obj(model.join("model.obj")).with_context(|| format!("loading the learned mesh of {}", args.run.display()))?;
-    let textures = MaterialTextures::load(&model)?;
+    let textures = MaterialTextures::load_for(&model, &mesh)?;
     let dataset = Dataset::load(&report.data_dir).with_context(|| format!("loading the run's scene data {}", report.data_dir.display()))?;
     let views = if args.views.is_empty() {
         dataset.test.iter().collect::<Vec<_>>()

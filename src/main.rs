@@ -154,6 +154,10 @@ enum Command {
         /// training only; docs/geometry.md).
         #[arg(long)]
         refine_geometry: bool,
+        /// Learn a tangent-space normal map with the textures, as NVDiffRecMC's second pass (Monte
+        /// Carlo training only; docs/model.md, *Normal map*).
+        #[arg(long)]
+        normal_map: bool,
         #[command(flatten)]
         plan: PlanArgs,
     },
@@ -298,10 +302,10 @@ fn main() -> Result<()> {
     let cli = Cli::parse();
     let Some(command) = cli.command else { return reconstruct(cli.reconstruct) };
     match command {
-        Command::Ablation { scene, iterations, geometry, geometry_iterations, mode, spp, sweep, eval_spp, out, refine_geometry, plan } => {
+        Command::Ablation { scene, iterations, geometry, geometry_iterations, mode, spp, sweep, eval_spp, out, refine_geometry, normal_map, plan } => {
             let out = out.unwrap_or_else(|| ablation::default_out(&scene));
             let fixed_mode = mode.fixed();
-            let fit = FitConfig { mode: fixed_mode.unwrap_or(ShadingMode::SplitSum), iterations, spp, refine_geometry, ..FitConfig::default() };
+            let fit = FitConfig { mode: fixed_mode.unwrap_or(ShadingMode::SplitSum), iterations, spp, refine_geometry, normal_map, ..FitConfig::default() };
             let mut geometry_pass = GeometryPassConfig::default();
             if let Some(v) = geometry_iterations { geometry_pass.iterations = v; }
             let base = ReconstructOptions { auto_mode: fixed_mode.is_none(), geometry: geometry.source(), geometry_pass, ..ReconstructOptions::new(&scene, fit, eval_spp, out.clone()) };

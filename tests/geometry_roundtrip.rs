@@ -136,7 +136,7 @@ fn gltf_and_glb_write_then_load_round_trip() {
         let BaseColor::Texture(tex) = &mesh.materials[0].base_color else { unreachable!() };
         save_srgb_texture(&dir.join("kd.png"), tex).unwrap();
         let file = dir.join(format!("m.{ext}"));
-        write_gltf(&file, &mesh, &[Some("kd.png".into()), None]).unwrap();
+        write_gltf(&file, &mesh, &[MaterialTextureNames { base_color: Some("kd.png".into()), ..Default::default() }, MaterialTextureNames::default()]).unwrap();
         let back = load_gltf(&file).unwrap();
         assert_same_mesh(&mesh, &back, 3e-3);
         // The stored TEXCOORD_0 is glTF's v (0 at the top): 1 − our v.

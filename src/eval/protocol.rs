@@ -137,7 +137,9 @@ fn material_metrics(val: &[View], mesh: &Mesh, bvh: &Bvh, textures: &MaterialTex
     let (mut raw, mut scaled, mut rough, mut metal, mut normal) = (vec![], vec![], vec![], vec![], vec![]);
     let mut scale = None;
     for view in val {
-        let g = GBuffer::trace(mesh, bvh, &view.camera);
+        // The normals scored are the ones the renders shade with: the normal map's, if any.
+        let mut g = GBuffer::trace(mesh, bvh, &view.camera);
+        g.apply_material_normals(textures);
         let kd = gbuffer_image(&g, 3, |s| textures.eval(s.uv).kd.to_array().to_vec());
         let r = gbuffer_image(&g, 1, |s| vec![textures.eval(s.uv).roughness]);
         let m = gbuffer_image(&g, 1, |s| vec![textures.eval(s.uv).metallic]);
@@ -217,6 +219,7 @@ pub fn evaluate(
     let scaled_textures = out.albedo_scale.map(|scale| MaterialTextures {
         kd: scale_colour(&textures.kd, scale).map_channels(3, |v| v.clamp(0.0, 1.0)),
         ks: textures.ks.clone(),
+        normal: textures.normal.clone(),
     });
     let scaled_materials = scaled_textures.as_ref();
     let relight_settings =

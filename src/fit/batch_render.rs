@@ -11,6 +11,7 @@ use candle_core::{Tensor, D};
 use crate::geometry::bvh::Bvh;
 use crate::geometry::Mesh;
 use crate::light::brdf_lut::BrdfLut;
+use crate::material::normal_map::{frames_at, perturb_on_tape};
 use crate::optim::texture::sample_bilinear;
 use crate::render::denoise::{BilateralParams, CrossBilateral};
 use crate::render::effects::Effects;
@@ -65,17 +66,23 @@ pub fn row_offsets(views: &[&TrainingView]) -> Vec<usize> {
 
 /// Renders `views` with the current `params`. `iteration` reseeds the Monte Carlo samples.
 /// `normals` [N, 3], when given, are the covered pixels' shading normals as a function of the
-/// vertices (`fit::vertex_refinement`; Monte Carlo only).
+/// vertices (`fit::vertex_refinement`; Monte Carlo only). A normal map in `params` perturbs them
+/// (or the views' own normals) on the tape.
 pub fn render_batch(views: &[&TrainingView], params: &Parameters, ctx: &ShadingContext, iteration: u64, normals: Option<&Tensor>) -> Result<BatchRender> {
     let offsets = row_offsets(views);
     let n = offsets[offsets.len() - 1];
     let uv: Arc<[[f32; 2]]> = views.iter().flat_map(|v| v.uv.iter().copied()).collect::<Vec<_>>().into();
     let kd = sample_bilinear(params.kd.as_tensor(), &uv)?;
     let ks = sample_bilinear(params.ks.as_tensor(), &uv)?;
+    let mapped = match &params.normal {
+        Some(map) => Some(normal_mapped(views, n, &uv, map, normals)?),
+        None => None,
+    };
+    let normals = mapped.as_ref().or(normals);
     let (rgb, light_buffers) = match ctx.mode {
         ShadingMode::SplitSum => {
             if normals.is_some() {
-                anyhow::bail!("vertex refinement needs Monte Carlo shading (the split-sum operator has no normal input)");
+                anyhow::bail!("vertex refinement and the normal map need Monte Carlo shading (the split-sum operator has no normal input)");
             }
             let geometry: Vec<_> = views.iter().flat_map(|v| v.normal_and_view()).collect();
             let op = SplitSumShading::new(&geometry, ctx.light_maps.clone(), ctx.lut.clone(), ctx.effects);
@@ -94,6 +101,26 @@ pub fn render_batch(views: &[&TrainingView], params: &Parameters, ctx: &ShadingC
     Ok(BatchRender { rgb, kd, ks, light_buffers, uv, offsets })
 }
 
+/// The pixels' shading normals through the normal map, [N, 3] on the tape: the map looked up at
+/// the pixels' UVs perturbs `normals` (vertex refinement's) or else the views' own normals, in
+/// the frames of the pixels' triangles (constants of the normals' values).
+fn normal_mapped(views: &[&TrainingView], n: usize, uv: &Arc<[[f32; 2]]>, map: &super::parameters::NormalParameter, normals: Option<&Tensor>) -> Result<Tensor> {
+    let dev = map.map.as_tensor().device();
+    let base = match normals {
+        Some(t) => t.clone(),
+        None => {
+            let rows: Vec<f32> = views.iter().flat_map(|v| v.surfels.iter().flat_map(|s| s.normal.to_array())).collect();
+            Tensor::from_vec(rows, (n, 3), dev)?
+        }
+    };
+    let values: Vec<f32> = base.detach().flatten_all()?.to_vec1::<f32>()?;
+    let points = views.iter().flat_map(|v| v.surfels.iter()).zip(values.chunks_exact(3)).map(|(s, nv)| (s.triangle, s.bary3(), glam::Vec3::from_slice(nv)));
+    let (t, b) = frames_at(&map.tangents, points);
+    let (t, b) = (Tensor::from_vec(t, (n, 3), dev)?, Tensor::from_vec(b, (n, 3), dev)?);
+    let m = sample_bilinear(map.map.as_tensor(), uv)?;
+    Ok(perturb_on_tape(&base, &t, &b, &m)?)
+}
+
 /// Monte Carlo shading of the batch: (demodulated diffuse light, specular radiance), [N, 3] each,
 /// optionally denoised per view in image space.
 #[allow(clippy::too_many_arguments)] // render_batch's inputs, passed on
@@ -101,13 +128,25 @@ fn shade_batch_mc(views: &[&TrainingView], offsets: &[usize], kd: &Tensor, ks: &
     let to_rows = |t: &Tensor| -> Result<Vec<[f32; 3]>> {
         Ok(t.detach().flatten_all()?.to_vec1::<f32>()?.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect())
     };
-    let pixels: Vec<Option<McPixel>> = views
+    let mut pixels: Vec<Option<McPixel>> = views
         .iter()
         .flat_map(|v| {
             let stride = (v.camera.width * v.camera.height) as u64;
             v.surfels.iter().zip(&v.pixels).map(move |(s, &p)| Some(McPixel::from_surfel(s, v.origin, v.index as u64 * stride + p as u64)))
         })
         .collect();
+    // Samples are drawn around the shading normal's current value, as the renderer draws them:
+    // a normal map's tilt can be far from the mesh's normal, and directions below the mesh's
+    // hemisphere but above the tilted one would otherwise never be drawn.
+    if let Some(n) = normals {
+        for (p, row) in pixels.iter_mut().zip(to_rows(n)?) {
+            if let Some(p) = p {
+                // On the camera's side, as the operator flips its input (two-sided shading).
+                let n = glam::Vec3::from_array(row).try_normalize().unwrap_or(p.surfel.normal);
+                p.surfel.normal = if n.dot(p.surfel.normal) < 0.0 { -n } else { n };
+            }
+        }
+    }
     // A new sample set every iteration (the estimator is unbiased across steps, not within one).
     let settings = McSettings {
         spp: ctx.spp,

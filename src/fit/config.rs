@@ -79,6 +79,11 @@ pub struct FitConfig {
     /// the settings' JSON when off, so the run identities of runs without it are unchanged.
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub refine_geometry: bool,
+    /// Learn a tangent-space normal map with the textures (`material::normal_map`, NVDiffRecMC's
+    /// second pass; Monte Carlo training only). Left out of the settings' JSON when off, like
+    /// `refine_geometry`.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub normal_map: bool,
 }
 
 impl Default for FitConfig {
@@ -105,6 +110,7 @@ impl Default for FitConfig {
             checkpoint_every: 100,
             prior_source: "none".into(),
             refine_geometry: false,
+            normal_map: false,
         }
     }
 }

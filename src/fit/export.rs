@@ -14,7 +14,7 @@ use crate::image::io::{write_exr, write_png};
 use crate::image::Image;
 use crate::light::CubeMap;
 use crate::material::{BaseColor, PartMaterial, Scalar};
-use crate::material::texture_maps::MaterialTextures;
+use crate::material::texture_maps::{MaterialTextures, NORMAL_FILE};
 
 /// Cube faces in `CubeMap` order (OpenGL: +x, −x, +y, −y, +z, −z).
 pub const FACE_NAMES: [&str; 6] = ["px", "nx", "py", "ny", "pz", "nz"];
@@ -50,9 +50,15 @@ pub fn write_model(dir: &Path, atlas_mesh: &Mesh, textures: &MaterialTextures) -
     write_png(&dir.join("roughness.png"), &textures.ks.channel(1))?;
     write_png(&dir.join("metallic.png"), &textures.ks.channel(2))?;
     let mesh = single_material_mesh(atlas_mesh, textures);
-    let names = MaterialTextureNames { base_color: Some("kd.png".into()), roughness: Some("roughness.png".into()), metallic: Some("metallic.png".into()) };
-    write_obj(dir.join("model.obj"), &mesh, &[names])?;
-    write_gltf(dir.join("model.gltf"), &mesh, &[Some("kd.png".into())])
+    let names = MaterialTextureNames {
+        base_color: Some("kd.png".into()),
+        roughness: Some("roughness.png".into()),
+        metallic: Some("metallic.png".into()),
+        occlusion_roughness_metallic: Some("ks.png".into()),
+        normal: textures.normal.as_ref().map(|_| NORMAL_FILE.to_string()),
+    };
+    write_obj(dir.join("model.obj"), &mesh, std::slice::from_ref(&names))?;
+    write_gltf(dir.join("model.gltf"), &mesh, &[names])
 }
 
 /// `dir/light_latlong.exr` and `dir/light_<face>.exr` for each cube face.

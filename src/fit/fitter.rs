@@ -1,6 +1,7 @@
 //! The optimisation loop: batches of views → differentiable render → loss → backward → Adam (per
 //! parameter group, warm-up and decay, clamps), with a progress bar and checkpoints a rerun resumes.
-//! With `FitConfig::refine_geometry` each step also moves the mesh (`vertex_refinement`).
+//! With `FitConfig::refine_geometry` each step also moves the mesh (`vertex_refinement`); with
+//! `FitConfig::normal_map` a tangent-space normal map is learned with the textures.
 
 use std::path::Path;
 use std::sync::Arc;
@@ -13,7 +14,9 @@ use obvhs::BvhBuildParams;
 use crate::geometry::bvh::Bvh;
 use crate::geometry::Mesh;
 
+use crate::geometry::tangents::corner_tangents;
 use crate::material::brdf::MIN_ROUGHNESS;
+use crate::material::normal_map::{NormalMap, NORMAL_MAX, NORMAL_MIN};
 use crate::optim::adam::{Adam, GroupConfig, LrSchedule};
 use crate::optim::adam::set_var;
 use crate::render::view::ShadingMode;
@@ -25,13 +28,16 @@ use super::config::FitConfig;
 use super::history::{trailing_mean, IterationRecord};
 use super::objective::objective;
 use super::settings_diff::differences;
-use super::parameters::Parameters;
+use super::parameters::{NormalParameter, Parameters};
 use super::training_view::TrainingView;
 use super::vertex_refinement::VertexRefinement;
 
 /// Lower clamp of the light's radiance after each step: 0, the physical floor. NVDiffRecMC clamps at
 /// 0.01 (its comment: the light's gradient vanished at 0); docs/model.md, *Differences from NVDiffRecMC*.
 pub const LIGHT_MIN: f64 = 0.0;
+
+/// The normal map's tensor in a checkpoint.
+const NORMAL_KEY: &str = "normal";
 
 pub struct Fit {
     pub config: FitConfig,
@@ -58,17 +64,29 @@ fn optimiser(config: &FitConfig, params: &Parameters) -> Result<Adam> {
         vec![params.ks.clone()],
     )?;
     adam.add_group(GroupConfig::new("light", config.lr_light).with_clamp(LIGHT_MIN, f64::MAX), vec![params.light.clone()])?;
+    if let (true, Some(n)) = (config.normal_map, &params.normal) {
+        // NVDiffRecMC's rate for its normal map: the material's.
+        adam.add_group(GroupConfig::new("normal", config.lr_material).with_channel_clamp(&NORMAL_MIN, &NORMAL_MAX), vec![n.map.clone()])?;
+    }
     Ok(adam)
 }
 
 impl Fit {
     /// A run from `params` (e.g. `Parameters::initial(&config)`).
-    pub fn new(config: FitConfig, params: Parameters, views: Vec<TrainingView>, ctx: ShadingContext) -> Result<Fit> {
+    pub fn new(config: FitConfig, mut params: Parameters, views: Vec<TrainingView>, ctx: ShadingContext) -> Result<Fit> {
         if views.is_empty() || views.iter().all(|v| v.is_empty()) {
             bail!("nothing to optimise: no training view sees the mesh");
         }
         if config.batch == 0 {
             bail!("batch size must be at least 1");
+        }
+        if config.normal_map {
+            if config.mode != ShadingMode::MonteCarlo {
+                bail!("the normal map (--normal-map) needs Monte Carlo training (--mode mc): the split-sum operator has no normal input");
+            }
+            if params.normal.is_none() {
+                params.normal = Some(NormalParameter::from_map(&NormalMap::flat(config.texture_res, corner_tangents(&ctx.mesh)?.into()))?);
+            }
         }
         let adam = optimiser(&config, &params)?;
         let identity = Self::own_identity(&config, &ctx)?;
@@ -166,6 +184,9 @@ impl Fit {
         let grads = loss.backward()?;
         let lr_factor = self.adam.lr_factor();
         self.adam.step(&grads)?;
+        if let (true, Some(n)) = (self.config.normal_map, &self.params.normal) {
+            n.normalize()?;
+        }
         if let (Some(r), Some(s)) = (self.refine.as_mut(), &refine_step) {
             r.end_step(s, &grads, lr_factor, it)?;
         }
@@ -201,6 +222,10 @@ impl Fit {
         set_var(&self.params.kd, &cp.kd).context("checkpoint kd")?;
         set_var(&self.params.ks, &cp.ks).context("checkpoint ks")?;
         set_var(&self.params.light, &cp.light).context("checkpoint light")?;
+        if let Some(n) = &self.params.normal {
+            let map = cp.extra.get(NORMAL_KEY).with_context(|| format!("the checkpoint in {} has no normal map", dir.display()))?;
+            set_var(&n.map, map).context("checkpoint normal map")?;
+        }
         self.adam.restore(&cp.adam)?;
         if let Some(r) = self.refine.as_mut() {
             r.restore(&cp.extra).with_context(|| format!("resuming the vertex refinement from {}", dir.display()))?;
@@ -219,10 +244,13 @@ impl Fit {
             adam_step: state.step,
             adam_slots: state.slots.iter().map(|(k, _, _, s)| (k.clone(), *s)).collect(),
         };
-        let extra = match &self.refine {
+        let mut extra = match &self.refine {
             Some(r) => r.checkpoint_tensors()?,
             None => Vec::new(),
         };
+        if let Some(n) = &self.params.normal {
+            extra.push((NORMAL_KEY.to_string(), n.map.as_tensor().clone()));
+        }
         checkpoint::save(dir, self.params.kd.as_tensor(), self.params.ks.as_tensor(), self.params.light.as_tensor(), &state, extra, &mut progress)
     }
 

@@ -12,7 +12,7 @@ use crate::optim::light_balance::light_white_balance;
 use crate::optim::loss::{image_loss, LossTarget};
 use crate::optim::prior_loss::prior_loss;
 use crate::optim::shading::shading_regularizer;
-use crate::optim::smoothness::smoothness_regularizer;
+use crate::optim::smoothness::{normal_flatness_regularizer, smoothness_regularizer};
 use crate::optim::srgb::srgb_encode;
 use crate::optim::texture::jitter_uv;
 
@@ -26,6 +26,15 @@ use super::training_view::TrainingView;
 /// looked up at jittered UVs (docs/model.md, *Differences from NVDiffRecMC*).
 pub const SMOOTHNESS_JITTER: f32 = 0.005;
 
+/// Weight of the normal map's smoothness (the kd/ks term's form on the map's texels):
+/// NVDiffRecMC's `lambda_nrm`, like the kd and ks weights, which are theirs too.
+pub const NORMAL_SMOOTHNESS: f64 = 0.025;
+/// Weight of the normal map's flatness, mean of 1 − ẑ·normalize(m(uv) + m(uv + jitter)) over the
+/// covered pixels: NVDiffRecMC's `lambda_nrm2`, which keeps the map from bending the normals
+/// where the images do not ask for it (a diffuse surface under one light cannot tell a darker
+/// albedo from a tilted normal).
+pub const NORMAL_FLATNESS: f64 = 0.25;
+
 /// The value of each term of one step (weighted), for logs and curves.
 #[derive(Clone, Copy, Debug, Default, Serialize, Deserialize)]
 pub struct LossTerms {
@@ -36,6 +45,9 @@ pub struct LossTerms {
     #[serde(default)]
     pub light: f64,
     pub prior: f64,
+    /// The normal map's smoothness and flatness.
+    #[serde(default)]
+    pub normal: f64,
     pub total: f64,
     /// PSNR (dB) of the batch's render against its target, sRGB, pixels with alpha > 0.8.
     pub psnr: f64,
@@ -56,9 +68,17 @@ pub fn objective(views: &[&TrainingView], render: &BatchRender, params: &Paramet
 
     let w = &config.regularizers;
     let alpha = target_rgba.narrow(D::Minus1, 3, 1)?.flatten_all()?;
+    let jittered = jitter_uv(&render.uv, SMOOTHNESS_JITTER, config.seed ^ (iteration as u64).wrapping_mul(0x9e37_79b9));
+    if let (true, Some(n)) = (config.normal_map, &params.normal) {
+        let map = n.map.as_tensor();
+        let smooth = smoothness_regularizer(map, &render.uv, &jittered, &alpha)?.affine(NORMAL_SMOOTHNESS, 0.0)?;
+        let flat = normal_flatness_regularizer(map, &render.uv, &jittered, &alpha)?.affine(NORMAL_FLATNESS, 0.0)?;
+        let t = (smooth + flat)?;
+        terms.normal = scalar(&t)?;
+        total = (total + t)?;
+    }
     if w.kd_smoothness > 0.0 || w.ks_smoothness > 0.0 {
         let uv = &render.uv;
-        let jittered = jitter_uv(uv, SMOOTHNESS_JITTER, config.seed ^ (iteration as u64).wrapping_mul(0x9e37_79b9));
         let mut smooth = smoothness_regularizer(params.kd.as_tensor(), uv, &jittered, &alpha)?.affine(w.kd_smoothness, 0.0)?;
         smooth = (smooth + smoothness_regularizer(params.ks.as_tensor(), uv, &jittered, &alpha)?.affine(w.ks_smoothness, 0.0)?)?;
         terms.smoothness = scalar(&smooth)?;
@@ -132,3 +152,4 @@ pub fn batch_psnr(rgb: &Tensor, target: &Tensor) -> Result<f64> {
     }
     Ok(if count == 0 { f64::NAN } else { -10.0 * (sum / count as f64).log10() })
 }
+

@@ -1,12 +1,16 @@
-//! The optimised parameters: kd and ks textures on the UV atlas and the base cube map of the light,
-//! as candle `Var`s (f32), with conversions to the renderer's plain types.
+//! The optimised parameters: kd and ks textures on the UV atlas, the base cube map of the light and,
+//! with `--normal-map`, a tangent-space normal map, as candle `Var`s (f32), with conversions to the
+//! renderer's plain types.
 
 use anyhow::{bail, Result};
 use candle_core::{DType, Device, Tensor, Var};
-use glam::Vec3;
+use std::sync::Arc;
+
+use glam::{Vec3, Vec4};
 
 use crate::image::Image;
 use crate::light::CubeMap;
+use crate::material::normal_map::NormalMap;
 use crate::material::texture_maps::MaterialTextures;
 
 use super::config::FitConfig;
@@ -18,6 +22,28 @@ pub struct Parameters {
     pub ks: Var,
     /// Base cube map [6, R, R, 3] (OpenGL face order, `CubeMap::data` order).
     pub light: Var,
+    /// Tangent-space normal map [T, T, 3] and the atlas mesh's corner frames it lives in.
+    pub normal: Option<NormalParameter>,
+}
+
+pub struct NormalParameter {
+    pub map: Var,
+    pub tangents: Arc<[[Vec4; 3]]>,
+}
+
+impl NormalParameter {
+    pub fn from_map(n: &NormalMap) -> Result<NormalParameter> {
+        Ok(NormalParameter { map: Var::from_tensor(&image_tensor(&n.map)?)?, tangents: n.tangents.clone() })
+    }
+
+    /// Each texel back to unit length (after an optimiser step).
+    pub fn normalize(&self) -> Result<()> {
+        let t = self.map.as_tensor();
+        let mut data = t.flatten_all()?.to_vec1::<f32>()?;
+        NormalMap::normalize_texels(&mut data);
+        self.map.set(&Tensor::from_vec(data, t.dims(), t.device())?)?;
+        Ok(())
+    }
 }
 
 fn image_tensor(img: &Image) -> Result<Tensor> {
@@ -59,11 +85,25 @@ impl Parameters {
             kd: Var::from_tensor(&image_tensor(&textures.kd)?)?,
             ks: Var::from_tensor(&image_tensor(&textures.ks)?)?,
             light: Var::from_tensor(&cube_tensor(light)?)?,
+            normal: textures.normal.as_ref().map(NormalParameter::from_map).transpose()?,
         })
     }
 
     pub fn textures(&self) -> Result<MaterialTextures> {
-        Ok(MaterialTextures { kd: tensor_image(self.kd.as_tensor())?, ks: tensor_image(self.ks.as_tensor())? })
+        let normal = match &self.normal {
+            Some(n) => Some(NormalMap { map: tensor_image(n.map.as_tensor())?, tangents: n.tangents.clone() }),
+            None => None,
+        };
+        Ok(MaterialTextures { kd: tensor_image(self.kd.as_tensor())?, ks: tensor_image(self.ks.as_tensor())?, normal })
+    }
+
+    /// The optimised tensors, named (the checkpoint's and the optimiser's names).
+    pub fn named(&self) -> Vec<(&'static str, &Var)> {
+        let mut v = vec![("kd", &self.kd), ("ks", &self.ks), ("light", &self.light)];
+        if let Some(n) = &self.normal {
+            v.push(("normal", &n.map));
+        }
+        v
     }
 
     pub fn light_cube(&self) -> Result<CubeMap> {
@@ -72,7 +112,7 @@ impl Parameters {
 
     /// True when every value is finite (a diverged run is caught before it is saved).
     pub fn all_finite(&self) -> Result<bool> {
-        for v in [&self.kd, &self.ks, &self.light] {
+        for (_, v) in self.named() {
             let flat = v.as_tensor().flatten_all()?.to_vec1::<f32>()?;
             if flat.iter().any(|x| !x.is_finite()) {
                 return Ok(false);
@@ -85,6 +125,19 @@ impl Parameters {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_normal_map_round_trips_with_its_frames() -> Result<()> {
+        let mut t = MaterialTextures::constant(2, Vec3::splat(0.5), 0.5, 0.0);
+        let frames: Arc<[[Vec4; 3]]> = vec![[Vec4::new(1.0, 0.0, 0.0, -1.0); 3]].into();
+        let mut n = NormalMap::flat(2, frames);
+        n.map.data[0..3].copy_from_slice(&[0.6, 0.0, 0.8]);
+        t.normal = Some(n);
+        let p = Parameters::from_values(&t, &CubeMap::constant(2, Vec3::ONE))?;
+        assert_eq!(p.named().iter().map(|(k, _)| *k).collect::<Vec<_>>(), ["kd", "ks", "light", "normal"]);
+        assert_eq!(p.textures()?, t);
+        Ok(())
+    }
 
     #[test]
     fn textures_and_light_round_trip_through_tensors() -> Result<()> {

@@ -12,6 +12,7 @@ use glam::{Mat3, Mat4, Vec2, Vec3};
 use serde_json::json;
 
 use super::mesh::{Mesh, Part};
+use super::obj::MaterialTextureNames;
 use crate::color::srgb_to_linear;
 use crate::image::safe_decode::guard;
 use crate::image::Image;
@@ -265,9 +266,11 @@ fn f32_bytes(values: impl Iterator<Item = f32>) -> Vec<u8> {
 
 /// Write `mesh` as glTF 2.0: `.glb` (one binary file) if the extension is `glb`, else `.gltf`
 /// with a `.bin` beside it. One primitive per part with its own vertices (so a reload gives the
-/// same parts); materials as pbrMetallicRoughness factors, double-sided; `base_color_textures[i]`
-/// optionally names material `i`'s base-colour image (sRGB, written by the caller, relative URI).
-pub fn write_gltf(path: impl AsRef<Path>, mesh: &Mesh, base_color_textures: &[Option<String>]) -> Result<()> {
+/// same parts); materials as pbrMetallicRoughness factors, double-sided; `textures[i]` optionally
+/// names material `i`'s images (written by the caller, relative URIs): base colour (sRGB), the
+/// packed occlusion-roughness-metallic image and the normal map (the OBJ-only single-channel
+/// roughness and metallic names are not used).
+pub fn write_gltf(path: impl AsRef<Path>, mesh: &Mesh, textures: &[MaterialTextureNames]) -> Result<()> {
     let path = path.as_ref();
     mesh.validate().map_err(|e| anyhow::anyhow!("cannot write {}: invalid mesh: {e}", path.display()))?;
     let glb = path.extension().is_some_and(|e| e.eq_ignore_ascii_case("glb"));
@@ -324,7 +327,7 @@ pub fn write_gltf(path: impl AsRef<Path>, mesh: &Mesh, base_color_textures: &[Op
         primitives.push((part.name.clone(), json!({ "attributes": attributes, "indices": i_acc, "material": part.material, "mode": 4 })));
     }
 
-    let (mut images, mut textures, mut materials) = (Vec::new(), Vec::new(), Vec::new());
+    let (mut images, mut gltf_textures, mut materials) = (Vec::new(), Vec::new(), Vec::new());
     for (i, m) in mesh.materials.iter().enumerate() {
         let factor = match &m.base_color {
             BaseColor::Constant(c) => *c,
@@ -335,12 +338,26 @@ pub fn write_gltf(path: impl AsRef<Path>, mesh: &Mesh, base_color_textures: &[Op
             "metallicFactor": m.metallic.mean(),
             "roughnessFactor": m.roughness.mean(),
         });
-        if let Some(Some(uri)) = base_color_textures.get(i) {
+        let names = textures.get(i).cloned().unwrap_or_default();
+        let mut texture = |uri: &String| {
             images.push(json!({ "uri": uri }));
-            textures.push(json!({ "source": images.len() - 1 }));
-            pbr["baseColorTexture"] = json!({ "index": textures.len() - 1 });
+            gltf_textures.push(json!({ "source": images.len() - 1 }));
+            json!({ "index": gltf_textures.len() - 1 })
+        };
+        if let Some(uri) = &names.base_color {
+            pbr["baseColorTexture"] = texture(uri);
         }
-        materials.push(json!({ "name": m.name, "pbrMetallicRoughness": pbr, "doubleSided": true }));
+        if let Some(uri) = &names.occlusion_roughness_metallic {
+            // The factors multiply the image: 1 leaves the texels as they are.
+            pbr["metallicRoughnessTexture"] = texture(uri);
+            pbr["metallicFactor"] = json!(1.0);
+            pbr["roughnessFactor"] = json!(1.0);
+        }
+        let mut material = json!({ "name": m.name, "pbrMetallicRoughness": pbr, "doubleSided": true });
+        if let Some(uri) = &names.normal {
+            material["normalTexture"] = texture(uri);
+        }
+        materials.push(material);
     }
 
     // One glTF mesh per part keeps part names (glTF names meshes, not primitives).
@@ -368,7 +385,7 @@ pub fn write_gltf(path: impl AsRef<Path>, mesh: &Mesh, base_color_textures: &[Op
     });
     if !images.is_empty() {
         doc["images"] = json!(images);
-        doc["textures"] = json!(textures);
+        doc["textures"] = json!(gltf_textures);
     }
     let text = serde_json::to_string(&doc)?;
     if glb {

@@ -19,6 +19,7 @@ pub mod obj;
 pub mod primitives;
 pub mod remesh;
 pub mod surface_samples;
+pub mod tangents;
 pub mod texture_file;
 
 pub use mesh::{Mesh, Part};

@@ -284,6 +284,12 @@ pub struct MaterialTextureNames {
     pub roughness: Option<String>,
     /// `map_Pm`: linear metallic image.
     pub metallic: Option<String>,
+    /// glTF only: the (occlusion, roughness, metallic) image, glTF's `metallicRoughnessTexture`
+    /// layout (roughness in G, metallic in B), linear.
+    pub occlusion_roughness_metallic: Option<String>,
+    /// Tangent-space normal map in the MikkTSpace frame, +Y along +v (OBJ `map_Bump`, which
+    /// Blender's importer reads as a normal map; glTF `normalTexture`), linear.
+    pub normal: Option<String>,
 }
 
 /// Write `mesh` as an OBJ file with an MTL beside it (same stem, `.mtl`). `textures[i]` names the
@@ -315,6 +321,9 @@ pub fn write_obj(path: impl AsRef<Path>, mesh: &Mesh, textures: &[MaterialTextur
         }
         if let Some(t) = &names.metallic {
             writeln!(mtl, "map_Pm {t}")?;
+        }
+        if let Some(t) = &names.normal {
+            writeln!(mtl, "map_Bump {t}")?;
         }
     }
     std::fs::write(&mtl_path, mtl).with_context(|| format!("writing {}", mtl_path.display()))?;

@@ -56,13 +56,17 @@ pub struct SettingOverrides {
     /// training only; docs/geometry.md).
     #[arg(long)]
     pub refine_geometry: bool,
+    /// Learn a tangent-space normal map with the textures, as NVDiffRecMC's second pass (Monte
+    /// Carlo training only; docs/model.md, *Normal map*).
+    #[arg(long)]
+    pub normal_map: bool,
 }
 
 impl SettingOverrides {
     /// The fit settings: the defaults, the training mode (`None` = auto, which starts from
     /// split-sum and is decided by the job), then each option given.
     pub fn fit_config(&self, fixed_mode: Option<ShadingMode>) -> FitConfig {
-        let mut fit = FitConfig { mode: fixed_mode.unwrap_or(ShadingMode::SplitSum), denoise: self.denoise, refine_geometry: self.refine_geometry, ..FitConfig::default() };
+        let mut fit = FitConfig { mode: fixed_mode.unwrap_or(ShadingMode::SplitSum), denoise: self.denoise, refine_geometry: self.refine_geometry, normal_map: self.normal_map, ..FitConfig::default() };
         let set = |slot: &mut f64, v: Option<f64>| if let Some(v) = v { *slot = v };
         if let Some(v) = self.spp { fit.spp = v; }
         if let Some(v) = self.iterations { fit.iterations = v; }

@@ -3,6 +3,7 @@
 pub mod brdf;
 pub mod brdf_grad;
 pub mod field;
+pub mod normal_map;
 mod part;
 pub mod texture_maps;
 

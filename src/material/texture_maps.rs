@@ -9,10 +9,15 @@ use glam::{Vec2, Vec3};
 use rayon::prelude::*;
 
 use crate::geometry::atlas::{texel_hits, Atlas};
+use crate::geometry::tangents::corner_tangents;
 use crate::geometry::Mesh;
 use crate::image::io::{read_png, write_png};
 use crate::image::Image;
+use crate::material::normal_map::NormalMap;
 use crate::material::SurfaceParams;
+
+/// The normal map's file name beside `kd.png` and `ks.png`.
+pub const NORMAL_FILE: &str = "normal.png";
 
 /// Texels a bilinear lookup inside a chart can touch lie within √2 texels of it.
 const CONSERVATIVE_REACH: f32 = 1.5;
@@ -25,12 +30,14 @@ pub struct MaterialTextures {
     pub kd: Image,
     /// (occlusion = 0, roughness, metallic), [res, res, 3].
     pub ks: Image,
+    /// A learned tangent-space normal map (`--normal-map`), in the atlas mesh's MikkTSpace frame.
+    pub normal: Option<NormalMap>,
 }
 
 impl MaterialTextures {
     /// Uniform textures (the usual start of an optimisation).
     pub fn constant(res: usize, kd: Vec3, roughness: f32, metallic: f32) -> Self {
-        MaterialTextures { kd: Image::filled(res, res, &kd.to_array()), ks: Image::filled(res, res, &[0.0, roughness, metallic]) }
+        MaterialTextures { kd: Image::filled(res, res, &kd.to_array()), ks: Image::filled(res, res, &[0.0, roughness, metallic]), normal: None }
     }
 
     pub fn resolution(&self) -> usize {
@@ -69,7 +76,7 @@ impl MaterialTextures {
         let mask: Vec<bool> = hits.iter().map(Option::is_some).collect();
         dilate(&mut kd, &mask, BAKE_DILATION);
         dilate(&mut ks, &mask, BAKE_DILATION);
-        MaterialTextures { kd, ks }
+        MaterialTextures { kd, ks, normal: None }
     }
 
     /// Bilinear lookup at an atlas UV (OBJ convention, v = 0 at the bottom row; clamped to the
@@ -82,15 +89,42 @@ impl MaterialTextures {
         SurfaceParams { kd: Vec3::from_array(kd), roughness: ks[1], metallic: ks[2] }
     }
 
-    /// Write `kd.png` (sRGB-encoded) and `ks.png` (linear) into `dir` (created if missing).
+    /// Write `kd.png` (sRGB-encoded) and `ks.png` (linear) into `dir` (created if missing), and
+    /// with a normal map `normal.png` (tangent space, m·0.5 + 0.5, the glTF/Blender encoding).
     pub fn save(&self, dir: impl AsRef<Path>) -> Result<()> {
         let dir = dir.as_ref();
         std::fs::create_dir_all(dir).with_context(|| format!("cannot create texture folder {}", dir.display()))?;
         write_png(&dir.join("kd.png"), &self.kd.linear_to_srgb())?;
-        write_png(&dir.join("ks.png"), &self.ks)
+        write_png(&dir.join("ks.png"), &self.ks)?;
+        if let Some(n) = &self.normal {
+            let mut encoded = n.map.clone();
+            encoded.data.iter_mut().for_each(|c| *c = *c * 0.5 + 0.5);
+            write_png(&dir.join(NORMAL_FILE), &encoded)?;
+        }
+        Ok(())
     }
 
-    /// Read textures written by `save`.
+    /// Read textures written by `save` for the atlas mesh `mesh` they were learned on: the normal
+    /// map too when `normal.png` is there (its frame is `mesh`'s MikkTSpace frame).
+    pub fn load_for(dir: impl AsRef<Path>, mesh: &Mesh) -> Result<Self> {
+        let dir = dir.as_ref();
+        let mut t = Self::load(dir)?;
+        let path = dir.join(NORMAL_FILE);
+        if path.exists() {
+            let mut map = read_png(&path)?;
+            if map.channels != 3 || map.width != t.kd.width || map.height != t.kd.height {
+                bail!("{}: expected an RGB normal map of {}², found {}x{} with {} channels", path.display(), t.kd.width, map.width, map.height, map.channels);
+            }
+            map.data.iter_mut().for_each(|c| *c = *c * 2.0 - 1.0);
+            NormalMap::normalize_texels(&mut map.data);
+            let tangents = corner_tangents(mesh).with_context(|| format!("the frame of {}", path.display()))?;
+            t.normal = Some(NormalMap { map, tangents: tangents.into() });
+        }
+        Ok(t)
+    }
+
+    /// Read the kd and ks textures written by `save` (without the normal map, whose frame needs
+    /// the mesh: [`MaterialTextures::load_for`]).
     pub fn load(dir: impl AsRef<Path>) -> Result<Self> {
         let dir = dir.as_ref();
         let rgb = |name: &str| -> Result<Image> {
@@ -109,7 +143,7 @@ impl MaterialTextures {
         if kd.width != ks.width {
             bail!("{}: kd.png is {}² but ks.png is {}²", dir.display(), kd.width, ks.width);
         }
-        Ok(MaterialTextures { kd, ks })
+        Ok(MaterialTextures { kd, ks, normal: None })
     }
 }
 

@@ -1,4 +1,5 @@
-//! Material smoothness regulariser (NVDiffRecMC's kd/ks "gradient" term): for every shaded pixel,
+//! Material smoothness regulariser (NVDiffRecMC's kd/ks "gradient" term), and the normal map's
+//! flatness beside it (same jittered lookups): for every shaded pixel,
 //! |f(uv) − f(uv + jitter)| averaged over channels, weighted by the pixel's coverage, averaged over
 //! pixels. It penalises texture variation at the scale of the jitter (the fit uses σ = 0.005 in UV
 //! units; NVDiffRecMC jitters in screen space instead), which spreads gradients to texels the
@@ -19,18 +20,38 @@ pub fn smoothness_regularizer(
     uv_jitter: &Arc<[[f32; 2]]>,
     weight: &Tensor,
 ) -> Result<Tensor> {
+    let (a, b) = jittered_lookups("smoothness regulariser", texture, uv, uv_jitter, weight)?;
+    weighted_mean(&(a - b)?.abs()?.mean(D::Minus1)?, weight)
+}
+
+/// The normal map's flatness (NVDiffRecMC's perturbed-normal term):
+/// mean_n( w_n · (1 − ẑ · normalize(m(uv_n) + m(uv_jitter_n))) ) of a tangent-space map `map`
+/// [H, W, 3]. It is 1 − cos of the tilt of the two lookups' mean direction: the map is pulled
+/// toward (0, 0, 1), and two neighbours that tilt opposite ways cost nothing extra.
+pub fn normal_flatness_regularizer(map: &Tensor, uv: &Arc<[[f32; 2]]>, uv_jitter: &Arc<[[f32; 2]]>, weight: &Tensor) -> Result<Tensor> {
+    let (a, b) = jittered_lookups("normal flatness", map, uv, uv_jitter, weight)?;
+    let sum = (a + b)?;
+    let len = sum.sqr()?.sum(D::Minus1)?.affine(1.0, 1e-20)?.sqrt()?;
+    let z = sum.narrow(D::Minus1, 2, 1)?.squeeze(D::Minus1)?;
+    weighted_mean(&(z / len)?.affine(-1.0, 1.0)?, weight)
+}
+
+/// The texture at the lookups and at their jittered copies, [N, C] each, after checking the sizes.
+fn jittered_lookups(what: &str, texture: &Tensor, uv: &Arc<[[f32; 2]]>, uv_jitter: &Arc<[[f32; 2]]>, weight: &Tensor) -> Result<(Tensor, Tensor)> {
     if uv.len() != uv_jitter.len() || weight.dims() != [uv.len()] {
         return Err(candle_core::Error::Msg(format!(
-            "smoothness regulariser: {} lookups, {} jittered, weights {:?} (must all be N)",
+            "{what}: {} lookups, {} jittered, weights {:?} (must all be N)",
             uv.len(),
             uv_jitter.len(),
             weight.dims()
         )));
     }
-    let a = sample_bilinear(texture, uv)?;
-    let b = sample_bilinear(texture, uv_jitter)?;
-    let per_lookup = (a - b)?.abs()?.mean(D::Minus1)?;
-    (per_lookup * weight.to_dtype(texture.dtype())?)?.mean_all()
+    Ok((sample_bilinear(texture, uv)?, sample_bilinear(texture, uv_jitter)?))
+}
+
+/// mean_n( w_n · per_lookup_n ).
+fn weighted_mean(per_lookup: &Tensor, weight: &Tensor) -> Result<Tensor> {
+    (per_lookup * weight.to_dtype(per_lookup.dtype())?)?.mean_all()
 }
 
 #[cfg(test)]
@@ -64,6 +85,33 @@ mod tests {
         let uv: Arc<[[f32; 2]]> = uv.into();
         let w = Tensor::rand(0f64, 1.0, 40, &dev)?;
         check_gradient(|x| smoothness_regularizer(&x[0], &uv, &uvj, &w), &[tex], 1e-6, 1e-2)?;
+        Ok(())
+    }
+
+    #[test]
+    fn normal_flatness_is_one_minus_the_cosine_of_a_uniform_tilt() -> Result<()> {
+        let dev = Device::Cpu;
+        let uv: Arc<[[f32; 2]]> = vec![[0.3, 0.4], [0.7, 0.2]].into();
+        let uvj: Arc<[[f32; 2]]> = vec![[0.31, 0.42], [0.69, 0.21]].into();
+        let w = Tensor::ones(2, DType::F32, &dev)?;
+        let uniform = |v: [f32; 3]| -> Result<Tensor> { Tensor::new(&v, &dev)?.reshape((1, 1, 3))?.broadcast_as((4, 4, 3))?.contiguous() };
+        assert!(normal_flatness_regularizer(&uniform([0.0, 0.0, 1.0])?, &uv, &uvj, &w)?.to_scalar::<f32>()?.abs() < 1e-7);
+        let theta = 0.3f32;
+        let got = normal_flatness_regularizer(&uniform([theta.sin(), 0.0, theta.cos()])?, &uv, &uvj, &w)?.to_scalar::<f32>()?;
+        assert!((got - (1.0 - theta.cos())).abs() < 1e-6, "{got}");
+        Ok(())
+    }
+
+    #[test]
+    fn normal_flatness_gradient_matches_finite_differences() -> anyhow::Result<()> {
+        let dev = Device::Cpu;
+        let up = Tensor::new(&[0f64, 0.0, 1.0], &dev)?.reshape((1, 1, 3))?.broadcast_as((5, 6, 3))?;
+        let map = (Tensor::rand(-0.5f64, 0.5, (5, 6, 3), &dev)? + up)?;
+        let uv: Vec<[f32; 2]> = (0..30).map(|i| [(i as f32 * 0.137) % 1.0, (i as f32 * 0.291) % 1.0]).collect();
+        let uvj = jitter_uv(&uv, 0.05, 3);
+        let uv: Arc<[[f32; 2]]> = uv.into();
+        let w = Tensor::rand(0f64, 1.0, 30, &dev)?;
+        check_gradient(|x| normal_flatness_regularizer(&x[0], &uv, &uvj, &w), &[map], 1e-6, 1e-2)?;
         Ok(())
     }
 }

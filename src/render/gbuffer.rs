@@ -102,6 +102,15 @@ impl GBuffer {
     pub fn material_params(&self, materials: &dyn MaterialField) -> Vec<Option<SurfaceParams>> {
         self.surfels.par_iter().map(|s| s.map(|s| s.material(materials))).collect()
     }
+
+    /// Replaces every surfel's shading normal by the one `materials` gives it (a normal map).
+    pub fn apply_material_normals(&mut self, materials: &dyn MaterialField) {
+        self.surfels.par_iter_mut().for_each(|s| {
+            if let Some(x) = s.as_mut() {
+                *x = x.with_material_normal(materials);
+            }
+        });
+    }
 }
 
 impl Surfel {
@@ -113,6 +122,17 @@ impl Surfel {
 
     pub fn material(&self, materials: &dyn MaterialField) -> SurfaceParams {
         materials.at(self.triangle, self.uv)
+    }
+
+    /// Barycentrics (b0, b1, b2) of the hit.
+    pub fn bary3(&self) -> Vec3 {
+        Vec3::new(1.0 - self.bary.x - self.bary.y, self.bary.x, self.bary.y)
+    }
+
+    /// This surfel with the shading normal `materials` gives it (a normal map's, or its own).
+    pub fn with_material_normal(mut self, materials: &dyn MaterialField) -> Surfel {
+        self.normal = materials.shading_normal(self.triangle, self.bary3(), self.uv, self.normal);
+        self
     }
 }
 

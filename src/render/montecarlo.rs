@@ -216,7 +216,7 @@ fn draw_samples_with_bounces(
             match scene.bvh.closest_hit(origin, wi, eps, f32::INFINITY) {
                 None => visit(env(light.lookup(wi))),
                 Some(hit) => {
-                    let y = Surfel::from_hit(scene.mesh, &hit, origin, wi);
+                    let y = Surfel::from_hit(scene.mesh, &hit, origin, wi).with_material_normal(scene.materials);
                     let (radiance, r) = outgoing_radiance(&y, -wi, light, scene, settings, bounces_left - 1, rng);
                     rays += r;
                     visit(McSample { wi, wi_l, radiance, weight: 1.0 / pdf_b, incident: Incident::Surface });

@@ -137,7 +137,8 @@ pub fn render_view_with(
 ) -> Image {
     let s = settings.supersample.max(1);
     let fine = camera.resized(camera.width * s, camera.height * s);
-    let gbuf = GBuffer::trace(mesh, bvh, &fine);
+    let mut gbuf = GBuffer::trace(mesh, bvh, &fine);
+    gbuf.apply_material_normals(materials);
     let scene = TraceScene { mesh, bvh, materials };
     let radiance = shade_with_params(&gbuf, &gbuf.material_params(materials), &scene, light, settings, 0, ray_epsilon(mesh));
     let mut premultiplied = Image::new(fine.width, fine.height, 4);
