@@ -1,0 +1,195 @@
+//! Where the relighting of a learned mesh loses, against known geometry: re-evaluates a finished
+//! run (learned geometry, its textures and light) three ways: as it is; with the ground truth's
+//! shading normals baked into the run's atlas as a tangent-space normal map
+//! (`material::normal_map`); and with the ground truth's materials baked in as well. The second
+//! row bounds what any normal-map or vertex-refinement lever can give; what the third still
+//! misses against known geometry is the mesh's own share (outline, shadows, interreflection).
+//! A column scores the raw relighting inside both outlines only, which leaves the outline out.
+//!
+//! cargo run --release --example normal_ceiling -- RUN_FOLDER [--spp 8] [--test-views N]
+//!
+//! The scene must have a ground-truth mesh. Each texel of the atlas takes the interpolated normal
+//! and the material of the ground truth's closest point to the surface point it shows, the
+//! normal expressed in that point's MikkTSpace frame (clamped to the frame's upper hemisphere,
+//! where the map lives). The evaluation is the run's own (`eval::protocol::evaluate`).
+
+use std::path::PathBuf;
+
+use anyhow::{bail, Context, Result};
+use clap::Parser;
+use glam::{Mat3, Vec3};
+use rayon::prelude::*;
+use reconstruct::eval::protocol::{evaluate, EvalSettings};
+use reconstruct::geometry::atlas::texel_hits;
+use reconstruct::geometry::bvh::Bvh;
+use reconstruct::geometry::closest_point::SurfaceQuery;
+use reconstruct::geometry::obj::load_obj;
+use reconstruct::geometry::tangents::{corner_tangents, interpolate};
+use reconstruct::geometry::Mesh;
+use reconstruct::image::io::read_exr;
+use reconstruct::light::CubeMap;
+use reconstruct::material::normal_map::NormalMap;
+use reconstruct::material::texture_maps::MaterialTextures;
+use reconstruct::material::SurfaceParams;
+use reconstruct::render::effects::Effects;
+use reconstruct::eval::metrics::{mask_from_alpha, over_white, psnr};
+use reconstruct::render::view::{render_view_with, PreparedLight, RenderSettings, ShadingMode};
+use reconstruct::scene::probe::Probe;
+use reconstruct::scene::dataset::Dataset;
+use reconstruct::scene::spec::SceneSpec;
+use reconstruct::scene_data::ground_truth::ground_truth_mesh;
+
+#[global_allocator]
+static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
+
+#[derive(Parser)]
+struct Args {
+    /// A run folder written by `reconstruct` with learned geometry (has model/, light/, report.json).
+    run: PathBuf,
+    #[arg(long, default_value_t = 8)]
+    spp: u32,
+    /// At most this many test views are relit (default: all).
+    #[arg(long)]
+    test_views: Option<usize>,
+}
+
+#[derive(serde::Deserialize)]
+struct RunReport {
+    scene: String,
+    data_dir: PathBuf,
+    effects: EffectsField,
+}
+
+#[derive(serde::Deserialize)]
+struct EffectsField {
+    effects: Effects,
+}
+
+/// Texels a bilinear lookup inside a chart can touch lie within √2 texels of it.
+const REACH: f32 = 1.5;
+
+/// The ground truth's normals and materials on `mesh`'s atlas: a `res`² normal map in `mesh`'s
+/// MikkTSpace frame, and `learned` with every texel a lookup can reach replaced by the ground
+/// truth's material (the others, outside every chart, keep the learned values).
+fn baked_truth(mesh: &Mesh, truth: &Mesh, learned: &MaterialTextures) -> Result<(NormalMap, MaterialTextures)> {
+    let res = learned.resolution();
+    let query = SurfaceQuery::new(truth)?;
+    let hits = texel_hits(mesh, res, REACH);
+    let mut map = NormalMap::flat(res, corner_tangents(mesh)?.into());
+    let mut materials = learned.clone();
+    let texels: Vec<Option<([f32; 3], SurfaceParams)>> = hits
+        .par_iter()
+        .map(|hit| {
+            let h = hit.as_ref()?;
+            let tri = mesh.triangles[h.triangle as usize].map(|i| i as usize);
+            let p = mesh.positions[tri[0]] * h.bary.x + mesh.positions[tri[1]] * h.bary.y + mesh.positions[tri[2]] * h.bary.z;
+            let n = (mesh.normals[tri[0]] * h.bary.x + mesh.normals[tri[1]] * h.bary.y + mesh.normals[tri[2]] * h.bary.z).normalize_or(Vec3::Z);
+            let c = query.closest(p)?;
+            let w = barycentrics(truth, c.triangle as usize, c.point);
+            let idx = truth.triangles[c.triangle as usize].map(|i| i as usize);
+            let face = truth.face_normal_scaled(c.triangle as usize).normalize_or(Vec3::Z);
+            let mut target = (truth.normals[idx[0]] * w.x + truth.normals[idx[1]] * w.y + truth.normals[idx[2]] * w.z).normalize_or(face);
+            // The closest sheet may face the other way (a thin part's far side): take it as seen.
+            if target.dot(n) < 0.0 {
+                target = -target;
+            }
+            let uv = truth.uvs[idx[0]] * w.x + truth.uvs[idx[1]] * w.y + truth.uvs[idx[2]] * w.z;
+            let material = truth.triangle_material(c.triangle as usize).eval(uv);
+            // perturb: n' ∝ m.x·T + m.y·B + m.z·N; solve for m, then keep it in the upper hemisphere.
+            let (t, s) = interpolate(&map.tangents[h.triangle as usize], h.bary);
+            let frame = Mat3::from_cols(t, s * n.cross(t), n);
+            let mut m = if frame.determinant().abs() > 1e-6 { (frame.inverse() * target).normalize_or(Vec3::Z) } else { Vec3::Z };
+            m.z = m.z.max(0.0);
+            Some((m.normalize_or(Vec3::Z).to_array(), material))
+        })
+        .collect();
+    for (i, texel) in texels.into_iter().enumerate() {
+        if let Some((m, p)) = texel {
+            map.map.data[3 * i..3 * i + 3].copy_from_slice(&m);
+            materials.kd.data[3 * i..3 * i + 3].copy_from_slice(&p.kd.to_array());
+            materials.ks.data[3 * i..3 * i + 3].copy_from_slice(&[0.0, p.roughness, p.metallic]);
+        }
+    }
+    Ok((map, materials))
+}
+
+/// Mean raw relighting PSNR (dB) over the pixels that both the target and the render cover
+/// (alpha > 0.8 in each): the protocol's PSNR without the outline's share.
+fn relight_psnr_inside(dataset: &Dataset, mesh: &Mesh, bvh: &Bvh, textures: &MaterialTextures, probes: &[Probe], settings: &EvalSettings) -> Result<f64> {
+    let render = RenderSettings { mode: settings.relight_mode, spp: settings.spp, supersample: settings.supersample, seed: settings.seed, effects: settings.effects };
+    let mut scores = Vec::new();
+    for probe in probes {
+        let light = PreparedLight::from_probe(probe);
+        for view in dataset.test.iter().take(settings.max_test_views.unwrap_or(usize::MAX)) {
+            if !view.has_relit(&probe.name) {
+                continue;
+            }
+            let target = view.load_relit(&probe.name)?;
+            let img = render_view_with(mesh, bvh, &light, &view.camera, &render, textures);
+            let both: Vec<bool> = mask_from_alpha(&target, 0.8).into_iter().zip(mask_from_alpha(&img, 0.8)).map(|(a, b)| a && b).collect();
+            scores.push(psnr(&over_white(&img, &img), &over_white(&target, &target), Some(&both)));
+        }
+    }
+    Ok(scores.iter().sum::<f64>() / scores.len().max(1) as f64)
+}
+
+/// Barycentrics (w0, w1, w2) of `point` (on the plane of triangle `t`).
+fn barycentrics(truth: &Mesh, t: usize, point: Vec3) -> Vec3 {
+    let [a, b, c] = truth.triangle_positions(t);
+    let (v0, v1, v2) = (b - a, c - a, point - a);
+    let (d00, d01, d11, d20, d21) = (v0.dot(v0), v0.dot(v1), v1.dot(v1), v2.dot(v0), v2.dot(v1));
+    let denom = d00 * d11 - d01 * d01;
+    if denom.abs() < f32::EPSILON {
+        return Vec3::new(1.0, 0.0, 0.0);
+    }
+    let (w1, w2) = ((d11 * d20 - d01 * d21) / denom, (d00 * d21 - d01 * d20) / denom);
+    Vec3::new(1.0 - w1 - w2, w1, w2)
+}
+
+fn main() -> Result<()> {
+    let args = Args::parse();
+    let report_path = args.run.join("report.json");
+    let report: RunReport = serde_json::from_str(&std::fs::read_to_string(&report_path).with_context(|| format!("{} is not a finished run folder", args.run.display()))?)
+        .with_context(|| format!("{}: not a reconstruct report", report_path.display()))?;
+    let spec = SceneSpec::find(&report.scene)?.with_data_dir(&report.data_dir);
+    let truth = ground_truth_mesh(&spec).with_context(|| format!("scene {}: no ground-truth mesh to take normals from", report.scene))?;
+    let model = args.run.join("model");
+    let mesh = load_obj(model.join("model.obj")).with_context(|| format!("loading the learned mesh of {}", args.run.display()))?;
+    let textures = MaterialTextures::load_for(&model, &mesh)?;
+    if textures.normal.is_some() {
+        bail!("{}: the run learned a normal map; compare against a run without one", args.run.display());
+    }
+    let light_path = args.run.join("light/light_latlong.exr");
+    let light_image = read_exr(&light_path).with_context(|| format!("the learned light {}", light_path.display()))?;
+    // Only the re-rendered training and validation views (not printed) see the learned light;
+    // relighting uses the test probes.
+    let light = CubeMap::from_latlong(&light_image, (light_image.height / 4).max(8));
+    let dataset = Dataset::load(&report.data_dir).with_context(|| format!("loading the run's scene data {}", report.data_dir.display()))?;
+    let probes = spec.load_test_probes()?;
+    let bvh = Bvh::build(&mesh);
+    let settings = EvalSettings {
+        relight_mode: ShadingMode::MonteCarlo,
+        spp: args.spp,
+        supersample: 2,
+        seed: 0,
+        effects: report.effects.effects,
+        train_mode: ShadingMode::MonteCarlo,
+        train_view_stride: 10,
+        max_test_views: args.test_views,
+    };
+    let (map, truth_materials) = baked_truth(&mesh, &truth, &textures)?;
+    let with_normals = MaterialTextures { normal: Some(map.clone()), ..textures.clone() };
+    let with_both = MaterialTextures { normal: Some(map), ..truth_materials };
+    println!("| on the learned mesh | relighting PSNR raw / scaled (dB) | raw, inside both outlines (dB) | normal error (°) |\n|---|---:|---:|---:|");
+    for (name, t) in [
+        ("the run's materials and the mesh's normals", &textures),
+        ("the run's materials, the ground truth's normals as a normal map", &with_normals),
+        ("the ground truth's materials and normals, baked", &with_both),
+    ] {
+        let e = evaluate(&dataset, &mesh, &bvh, t, &light, &probes, &settings)?.metrics;
+        let f = |v: Option<f64>| v.map_or("–".to_string(), |v| format!("{v:.2}"));
+        let inside = relight_psnr_inside(&dataset, &mesh, &bvh, t, &probes, &settings)?;
+        println!("| {name} | {} / {} | {inside:.2} | {} |", f(e.relight_psnr_raw), f(e.relight_psnr_scaled), f(e.normal_error_deg));
+    }
+    Ok(())
+}
