@@ -68,8 +68,14 @@ pub fn objective(views: &[&TrainingView], render: &BatchRender, params: &Paramet
 
     let w = &config.regularizers;
     let alpha = target_rgba.narrow(D::Minus1, 3, 1)?.flatten_all()?;
-    let jittered = jitter_uv(&render.uv, SMOOTHNESS_JITTER, config.seed ^ (iteration as u64).wrapping_mul(0x9e37_79b9));
-    if let (true, Some(n)) = (config.normal_map, &params.normal) {
+    let normal_map = params.normal.as_ref().filter(|_| config.normal_map);
+    // The jittered lookups, drawn only when a term reads them (every pixel, every step).
+    let jittered = if normal_map.is_some() || w.kd_smoothness > 0.0 || w.ks_smoothness > 0.0 {
+        jitter_uv(&render.uv, SMOOTHNESS_JITTER, config.seed ^ (iteration as u64).wrapping_mul(0x9e37_79b9))
+    } else {
+        Vec::new().into()
+    };
+    if let Some(n) = normal_map {
         let map = n.map.as_tensor();
         let smooth = smoothness_regularizer(map, &render.uv, &jittered, &alpha)?.affine(NORMAL_SMOOTHNESS, 0.0)?;
         let flat = normal_flatness_regularizer(map, &render.uv, &jittered, &alpha)?.affine(NORMAL_FLATNESS, 0.0)?;
