@@ -9,7 +9,11 @@
 //! one (normals baked), with the run's effects and with direct light without shadows: if the
 //! meshes differ much more with shadows and bounces than without, the gap is visibility.
 //!
-//! cargo run --release --example normal_ceiling -- RUN_FOLDER [--spp 8] [--test-views N]
+//! cargo run --release --example normal_ceiling -- RUN_FOLDER [--spp 8] [--test-views N] [--error-map FILE.png]
+//!
+//! `--error-map` writes where the second table's renders (the run's effects) miss: the mean
+//! absolute error over the probes on the first test view, the ground-truth mesh left and the
+//! learned one right, on one scale (white = the 99th percentile of both).
 //!
 //! The scene must have a ground-truth mesh. Each texel of the atlas takes the interpolated normal
 //! and the material of the ground truth's closest point to the surface point it shows, the
@@ -29,7 +33,8 @@ use reconstruct::geometry::closest_point::SurfaceQuery;
 use reconstruct::geometry::obj::load_obj;
 use reconstruct::geometry::tangents::{corner_tangents, interpolate};
 use reconstruct::geometry::Mesh;
-use reconstruct::image::io::read_exr;
+use reconstruct::image::io::{read_exr, write_png};
+use reconstruct::image::Image;
 use reconstruct::light::CubeMap;
 use reconstruct::material::normal_map::NormalMap;
 use reconstruct::material::texture_maps::MaterialTextures;
@@ -54,6 +59,9 @@ struct Args {
     /// At most this many test views are relit (default: all).
     #[arg(long)]
     test_views: Option<usize>,
+    /// Write the second table's error maps (first test view) side by side to this PNG.
+    #[arg(long)]
+    error_map: Option<PathBuf>,
 }
 
 #[derive(serde::Deserialize)]
@@ -141,6 +149,24 @@ fn relight_psnr(dataset: &Dataset, mesh: &Mesh, bvh: &Bvh, materials: &dyn Mater
     Ok(scores.iter().sum::<f64>() / scores.len().max(1) as f64)
 }
 
+/// Mean over the probes of the per-pixel absolute error (mean over RGB, over white) of `mesh`
+/// relit with `materials` on the first test view, as a one-channel image.
+fn error_map(dataset: &Dataset, mesh: &Mesh, bvh: &Bvh, materials: &dyn MaterialField, probes: &[Probe], settings: &EvalSettings) -> Result<Image> {
+    let view = dataset.test.first().context("the scene has no test views")?;
+    let render = RenderSettings { mode: settings.relight_mode, spp: settings.spp, supersample: settings.supersample, seed: settings.seed, effects: settings.effects };
+    let mut sum = Image::new(view.camera.width, view.camera.height, 1);
+    let relit: Vec<&Probe> = probes.iter().filter(|p| view.has_relit(&p.name)).collect();
+    for probe in &relit {
+        let target = view.load_relit(&probe.name)?;
+        let img = render_view_with(mesh, bvh, &PreparedLight::from_probe(probe), &view.camera, &render, materials);
+        let (a, b) = (over_white(&img, &img), over_white(&target, &target));
+        for (i, e) in sum.data.iter_mut().enumerate() {
+            *e += (0..3).map(|c| (a.data[3 * i + c] - b.data[3 * i + c]).abs()).sum::<f32>() / 3.0 / relit.len() as f32;
+        }
+    }
+    Ok(sum)
+}
+
 /// Barycentrics (w0, w1, w2) of `point` (on the plane of triangle `t`).
 fn barycentrics(truth: &Mesh, t: usize, point: Vec3) -> Vec3 {
     let [a, b, c] = truth.triangle_positions(t);
@@ -212,6 +238,25 @@ fn main() -> Result<()> {
         let full = relight_psnr(&dataset, m, b, materials, settings.effects, &probes, &settings, false)?;
         let direct = relight_psnr(&dataset, m, b, materials, unshadowed, &probes, &settings, false)?;
         println!("| {name} | {full:.2} | {direct:.2} |");
+    }
+    if let Some(path) = &args.error_map {
+        let maps = [error_map(&dataset, &truth, &truth_bvh, &truth, &probes, &settings)?, error_map(&dataset, &mesh, &bvh, &with_both, &probes, &settings)?];
+        // White at the 99th percentile of both maps' covered pixels, so a few outline pixels do
+        // not set the scale.
+        let mut errors: Vec<f32> = maps.iter().flat_map(|m| m.data.iter().copied()).filter(|&e| e > 0.0).collect();
+        errors.sort_by(f32::total_cmp);
+        let scale = errors.get(errors.len() * 99 / 100).copied().unwrap_or(1.0).max(f32::MIN_POSITIVE);
+        let (w, h) = (maps[0].width, maps[0].height);
+        let mut side = Image::new(2 * w, h, 1);
+        for (k, m) in maps.iter().enumerate() {
+            for y in 0..h {
+                for x in 0..w {
+                    side.pixel_mut(k * w + x, y)[0] = (m.pixel(x, y)[0] / scale).min(1.0);
+                }
+            }
+        }
+        write_png(path, &side).with_context(|| format!("writing {}", path.display()))?;
+        println!("\nerror maps (ground-truth mesh | learned mesh, white = {scale:.3}): {}", path.display());
     }
     Ok(())
 }

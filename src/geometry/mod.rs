@@ -1,7 +1,6 @@
-//! Meshes, their files (OBJ via tobj, glTF via gltf), ray queries through a BVH (obvhs), and the
-//! visual hull of a set of masks (a starting shape when the data has no mesh).
 //! Meshes, their files (OBJ via tobj, glTF via gltf), ray queries through a BVH (obvhs),
-//! closest-point queries (parry3d) and area-weighted surface samples.
+//! closest-point queries (parry3d), area-weighted surface samples, and the visual hull of a set
+//! of masks (a starting shape when the data has no mesh).
 
 pub mod atlas;
 pub mod bvh;
