@@ -2,18 +2,24 @@
 //! run (learned geometry, its textures and light) three ways: as it is; with the ground truth's
 //! shading normals baked into the run's atlas as a tangent-space normal map
 //! (`material::normal_map`); and with the ground truth's materials baked in as well. The second
-//! row bounds what any normal-map or vertex-refinement lever can give; what the third still
-//! misses against known geometry is the mesh's own share (outline, shadows, interreflection).
-//! A column scores the raw relighting inside both outlines only, which leaves the outline out. A
-//! second table renders the ground truth's materials on the ground-truth mesh and on the learned
-//! one (normals baked), with the run's effects and with direct light without shadows: if the
-//! meshes differ much more with shadows and bounces than without, the gap is visibility.
+//! row bounds what a normal map baked from the truth can give. A column scores the raw
+//! relighting inside both outlines only, which leaves the outline out.
+//!
+//! A second table renders the ground truth's materials and normals three ways: on the
+//! ground-truth mesh; baked onto the learned mesh; and on the learned mesh as each pixel sees
+//! them (the ground truth's own G-buffer supplies the visible surface's material and shading
+//! normal, the learned mesh the positions, the outline, and what shadow and bounce rays meet).
+//! The third isolates what the learned positions cost; the bake is not a clean stand-in for it,
+//! because a closest-point bake gives a point above a thin part the mesh lacks (a sauce blob) the
+//! surface under that part. Each with the run's effects and with direct light without shadows,
+//! in PSNR and in MSE: errors from different causes add in MSE, not in PSNR.
 //!
 //! cargo run --release --example normal_ceiling -- RUN_FOLDER [--spp 8] [--test-views N] [--error-map FILE.png]
 //!
-//! `--error-map` writes where the second table's renders (the run's effects) miss: the mean
-//! absolute error over the probes on the first test view, the ground-truth mesh left and the
-//! learned one right, on one scale (white = the 99th percentile of both).
+//! `--error-map` writes where the second table's renders (the run's effects) miss: the root mean
+//! squared error over the probes on the first test view, the ground-truth mesh left and the
+//! learned positions with the truth as each pixel sees it right, on one scale (white = the 99th
+//! percentile of both), and prints how much of each one's squared error its worst pixels hold.
 //!
 //! The scene must have a ground-truth mesh. Each texel of the atlas takes the interpolated normal
 //! and the material of the ground truth's closest point to the surface point it shows, the
@@ -40,8 +46,11 @@ use reconstruct::material::normal_map::NormalMap;
 use reconstruct::material::texture_maps::MaterialTextures;
 use reconstruct::material::{MaterialField, SurfaceParams};
 use reconstruct::render::effects::Effects;
-use reconstruct::eval::metrics::{mask_from_alpha, over_white, psnr};
-use reconstruct::render::view::{render_view_with, PreparedLight, RenderSettings, ShadingMode};
+use reconstruct::eval::metrics::{mask_from_alpha, mse, over_white, psnr};
+use reconstruct::render::gbuffer::GBuffer;
+use reconstruct::render::montecarlo::TraceScene;
+use reconstruct::render::view::{ray_epsilon, render_view_with, shade_with_params, straight_rgba, PreparedLight, RenderSettings, ShadingMode};
+use reconstruct::scene::camera::Camera;
 use reconstruct::scene::probe::Probe;
 use reconstruct::scene::dataset::Dataset;
 use reconstruct::scene::spec::SceneSpec;
@@ -124,12 +133,48 @@ fn baked_truth(mesh: &Mesh, truth: &Mesh, learned: &MaterialTextures) -> Result<
     Ok((map, materials))
 }
 
-/// Mean raw relighting PSNR (dB) of `mesh` with `materials` rendered with `effects`, over the
-/// target's pixels (alpha > 0.8, the protocol's mask) or, with `inside_both`, over the pixels the
-/// render covers too: the protocol's PSNR without the outline's share.
-#[allow(clippy::too_many_arguments)] // one experiment's knobs
-fn relight_psnr(dataset: &Dataset, mesh: &Mesh, bvh: &Bvh, materials: &dyn MaterialField, effects: Effects, probes: &[Probe], settings: &EvalSettings, inside_both: bool) -> Result<f64> {
-    let render = RenderSettings { mode: settings.relight_mode, spp: settings.spp, supersample: settings.supersample, seed: settings.seed, effects };
+/// A way to render a view: a light, a camera and settings in, a linear RGBA image out.
+type Render<'a> = dyn Fn(&PreparedLight, &Camera, &RenderSettings) -> Image + 'a;
+
+/// `mesh` rendered with `materials` (the visible surface and what shadow and bounce rays reach).
+fn on_mesh<'a>(mesh: &'a Mesh, bvh: &'a Bvh, materials: &'a dyn MaterialField) -> impl Fn(&PreparedLight, &Camera, &RenderSettings) -> Image + 'a {
+    move |light, camera, settings| render_view_with(mesh, bvh, light, camera, settings, materials)
+}
+
+/// `mesh` rendered with the shading normals (and, with `truth_materials`, the materials) the
+/// ground truth shows through each pixel (its own G-buffer, where both cover the pixel;
+/// elsewhere, and for what shadow and bounce rays reach, `baked`): the learned positions with
+/// the ground truth's surface as the camera sees it, free of the bake's closest-point mistakes
+/// (a point above a thin part, such as a sauce blob the mesh lacks, takes the surface under it).
+fn seen_truth<'a>(mesh: &'a Mesh, bvh: &'a Bvh, baked: &'a dyn MaterialField, truth: &'a Mesh, truth_bvh: &'a Bvh, truth_materials: bool) -> impl Fn(&PreparedLight, &Camera, &RenderSettings) -> Image + 'a {
+    move |light, camera, settings| {
+        let s = settings.supersample.max(1);
+        let fine = camera.resized(camera.width * s, camera.height * s);
+        let mut gbuf = GBuffer::trace(mesh, bvh, &fine);
+        gbuf.apply_material_normals(baked);
+        let seen = GBuffer::trace(truth, truth_bvh, &fine);
+        let mut params = gbuf.material_params(baked);
+        for ((surfel, param), t) in gbuf.surfels.iter_mut().zip(params.iter_mut()).zip(&seen.surfels) {
+            if let (Some(surfel), Some(t)) = (surfel.as_mut(), t) {
+                surfel.normal = t.normal;
+                if truth_materials {
+                    *param = Some(t.material(truth));
+                }
+            }
+        }
+        let scene = TraceScene { mesh, bvh, materials: baked };
+        let radiance = shade_with_params(&gbuf, &params, &scene, light, settings, 0, ray_epsilon(mesh));
+        straight_rgba(&gbuf, &radiance, s)
+    }
+}
+
+/// Mean raw relighting PSNR (dB) and mean squared error (the mean of each image's masked MSE) of
+/// `render` with `effects`, over the target's pixels (alpha > 0.8, the protocol's mask) or, with
+/// `inside_both`, over the pixels the render covers too: the protocol's PSNR without the
+/// outline's share. Errors from different causes add in MSE, not in PSNR: a fixed local error
+/// costs many dB on top of a small error elsewhere and few on top of a large one.
+fn relight_scores(dataset: &Dataset, render: &Render, effects: Effects, probes: &[Probe], settings: &EvalSettings, inside_both: bool) -> Result<(f64, f64)> {
+    let render_settings = RenderSettings { mode: settings.relight_mode, spp: settings.spp, supersample: settings.supersample, seed: settings.seed, effects };
     let mut scores = Vec::new();
     for probe in probes {
         let light = PreparedLight::from_probe(probe);
@@ -138,30 +183,32 @@ fn relight_psnr(dataset: &Dataset, mesh: &Mesh, bvh: &Bvh, materials: &dyn Mater
                 continue;
             }
             let target = view.load_relit(&probe.name)?;
-            let img = render_view_with(mesh, bvh, &light, &view.camera, &render, materials);
+            let img = render(&light, &view.camera, &render_settings);
             let mut mask = mask_from_alpha(&target, 0.8);
             if inside_both {
                 mask.iter_mut().zip(mask_from_alpha(&img, 0.8)).for_each(|(a, b)| *a &= b);
             }
-            scores.push(psnr(&over_white(&img, &img), &over_white(&target, &target), Some(&mask)));
+            let (a, b) = (over_white(&img, &img), over_white(&target, &target));
+            scores.push((psnr(&a, &b, Some(&mask)), mse(&a, &b, Some(&mask))));
         }
     }
-    Ok(scores.iter().sum::<f64>() / scores.len().max(1) as f64)
+    let n = scores.len().max(1) as f64;
+    Ok((scores.iter().map(|s| s.0).sum::<f64>() / n, scores.iter().map(|s| s.1).sum::<f64>() / n))
 }
 
-/// Mean over the probes of the per-pixel absolute error (mean over RGB, over white) of `mesh`
-/// relit with `materials` on the first test view, as a one-channel image.
-fn error_map(dataset: &Dataset, mesh: &Mesh, bvh: &Bvh, materials: &dyn MaterialField, probes: &[Probe], settings: &EvalSettings) -> Result<Image> {
+/// Mean over the probes of the per-pixel squared error (mean over RGB, over white: the terms of
+/// the relighting PSNR's MSE) of `render` on the first test view, as a one-channel image.
+fn error_map(dataset: &Dataset, render: &Render, probes: &[Probe], settings: &EvalSettings) -> Result<Image> {
     let view = dataset.test.first().context("the scene has no test views")?;
-    let render = RenderSettings { mode: settings.relight_mode, spp: settings.spp, supersample: settings.supersample, seed: settings.seed, effects: settings.effects };
+    let render_settings = RenderSettings { mode: settings.relight_mode, spp: settings.spp, supersample: settings.supersample, seed: settings.seed, effects: settings.effects };
     let mut sum = Image::new(view.camera.width, view.camera.height, 1);
     let relit: Vec<&Probe> = probes.iter().filter(|p| view.has_relit(&p.name)).collect();
     for probe in &relit {
         let target = view.load_relit(&probe.name)?;
-        let img = render_view_with(mesh, bvh, &PreparedLight::from_probe(probe), &view.camera, &render, materials);
+        let img = render(&PreparedLight::from_probe(probe), &view.camera, &render_settings);
         let (a, b) = (over_white(&img, &img), over_white(&target, &target));
         for (i, e) in sum.data.iter_mut().enumerate() {
-            *e += (0..3).map(|c| (a.data[3 * i + c] - b.data[3 * i + c]).abs()).sum::<f32>() / 3.0 / relit.len() as f32;
+            *e += (0..3).map(|c| (a.data[3 * i + c] - b.data[3 * i + c]).powi(2)).sum::<f32>() / 3.0 / relit.len() as f32;
         }
     }
     Ok(sum)
@@ -211,6 +258,7 @@ fn main() -> Result<()> {
         train_view_stride: 10,
         max_test_views: args.test_views,
     };
+    let truth_bvh = Bvh::build(&truth);
     let (map, truth_materials) = baked_truth(&mesh, &truth, &textures)?;
     let with_normals = MaterialTextures { normal: Some(map.clone()), ..textures.clone() };
     let with_both = MaterialTextures { normal: Some(map), ..truth_materials };
@@ -222,25 +270,52 @@ fn main() -> Result<()> {
     ] {
         let e = evaluate(&dataset, &mesh, &bvh, t, &light, &probes, &settings)?.metrics;
         let f = |v: Option<f64>| v.map_or("–".to_string(), |v| format!("{v:.2}"));
-        let inside = relight_psnr(&dataset, &mesh, &bvh, t, settings.effects, &probes, &settings, true)?;
+        let inside = relight_scores(&dataset, &on_mesh(&mesh, &bvh, t), settings.effects, &probes, &settings, true)?.0;
         println!("| {name} | {} / {} | {inside:.2} | {} |", f(e.relight_psnr_raw), f(e.relight_psnr_scaled), f(e.normal_error_deg));
     }
+    let seen_normals = seen_truth(&mesh, &bvh, &with_normals, &truth, &truth_bvh, false);
+    let (raw, inside) = (
+        relight_scores(&dataset, &seen_normals, settings.effects, &probes, &settings, false)?.0,
+        relight_scores(&dataset, &seen_normals, settings.effects, &probes, &settings, true)?.0,
+    );
+    println!("| the run's materials, the ground truth's normals as each pixel sees them | {raw:.2} / – | {inside:.2} | 0 |");
     // Visibility: the same ground-truth materials on either mesh, with the run's effects and with
     // direct light without shadows (which neither mesh's shape can then change but through its
     // normals and outline).
-    let truth_bvh = Bvh::build(&truth);
     let unshadowed = Effects { shadows: false, indirect_bounces: 0, ..settings.effects };
-    println!("\n| ground-truth materials on | raw relighting PSNR (dB), the run's effects | direct light, no shadows |\n|---|---:|---:|");
-    for (name, m, b, materials) in [
-        ("the ground-truth mesh", &truth, &truth_bvh, &truth as &dyn MaterialField),
-        ("the learned mesh, ground-truth normals baked", &mesh, &bvh, &with_both as &dyn MaterialField),
-    ] {
-        let full = relight_psnr(&dataset, m, b, materials, settings.effects, &probes, &settings, false)?;
-        let direct = relight_psnr(&dataset, m, b, materials, unshadowed, &probes, &settings, false)?;
-        println!("| {name} | {full:.2} | {direct:.2} |");
+    println!("\n| ground-truth materials on | the run's effects: raw relighting PSNR (dB) / mean MSE | direct light, no shadows: PSNR / MSE |\n|---|---:|---:|");
+    let mut mse_rows = Vec::new();
+    let renders: [(&str, Box<Render>); 3] = [
+        ("the ground-truth mesh", Box::new(on_mesh(&truth, &truth_bvh, &truth))),
+        ("the learned mesh, ground-truth materials and normals baked", Box::new(on_mesh(&mesh, &bvh, &with_both))),
+        ("the learned mesh, ground-truth materials and normals as each pixel sees them", Box::new(seen_truth(&mesh, &bvh, &with_both, &truth, &truth_bvh, true))),
+    ];
+    for (name, render) in &renders {
+        let full = relight_scores(&dataset, render.as_ref(), settings.effects, &probes, &settings, false)?;
+        let direct = relight_scores(&dataset, render.as_ref(), unshadowed, &probes, &settings, false)?;
+        println!("| {name} | {:.2} / {:.5} | {:.2} / {:.5} |", full.0, full.1, direct.0, direct.1);
+        mse_rows.push((full.1, direct.1));
+    }
+    for (k, (name, _)) in renders.iter().enumerate().skip(1) {
+        println!(
+            "\n{name}: excess MSE over the ground-truth mesh {:.5} with the run's effects, {:.5} with direct light without shadows",
+            mse_rows[k].0 - mse_rows[0].0,
+            mse_rows[k].1 - mse_rows[0].1
+        );
     }
     if let Some(path) = &args.error_map {
-        let maps = [error_map(&dataset, &truth, &truth_bvh, &truth, &probes, &settings)?, error_map(&dataset, &mesh, &bvh, &with_both, &probes, &settings)?];
+        let maps = [error_map(&dataset, renders[0].1.as_ref(), &probes, &settings)?, error_map(&dataset, renders[2].1.as_ref(), &probes, &settings)?];
+        // How concentrated each map's squared error is: the share the worst 1 % and 5 % of the
+        // pixels hold (of those either render or the target covers, i.e. nonzero in either map).
+        let covered: Vec<usize> = (0..maps[0].data.len()).filter(|&i| maps.iter().any(|m| m.data[i] > 0.0)).collect();
+        for (name, m) in ["ground-truth mesh", "learned positions, the truth as each pixel sees it"].iter().zip(&maps) {
+            let mut e: Vec<f32> = covered.iter().map(|&i| m.data[i]).collect();
+            e.sort_by(|a, b| b.total_cmp(a));
+            let total: f64 = e.iter().map(|&v| v as f64).sum();
+            let share = |f: usize| e[..covered.len() * f / 100].iter().map(|&v| v as f64).sum::<f64>() / total.max(f64::MIN_POSITIVE);
+            println!("{name}, first test view: mean squared error {:.5} over {} pixels; the worst 1 % hold {:.0} % of it, the worst 5 % {:.0} %", total / covered.len().max(1) as f64, covered.len(), 100.0 * share(1), 100.0 * share(5));
+        }
+        let maps = maps.map(|m| Image { data: m.data.iter().map(|v| v.sqrt()).collect(), ..m });
         // White at the 99th percentile of both maps' covered pixels, so a few outline pixels do
         // not set the scale.
         let mut errors: Vec<f32> = maps.iter().flat_map(|m| m.data.iter().copied()).filter(|&e| e > 0.0).collect();
@@ -256,7 +331,7 @@ fn main() -> Result<()> {
             }
         }
         write_png(path, &side).with_context(|| format!("writing {}", path.display()))?;
-        println!("\nerror maps (ground-truth mesh | learned mesh, white = {scale:.3}): {}", path.display());
+        println!("\nerror maps (ground-truth mesh | learned positions, white = {scale:.3}): {}", path.display());
     }
     Ok(())
 }

@@ -141,12 +141,18 @@ pub fn render_view_with(
     gbuf.apply_material_normals(materials);
     let scene = TraceScene { mesh, bvh, materials };
     let radiance = shade_with_params(&gbuf, &gbuf.material_params(materials), &scene, light, settings, 0, ray_epsilon(mesh));
-    let mut premultiplied = Image::new(fine.width, fine.height, 4);
+    straight_rgba(&gbuf, &radiance, s)
+}
+
+/// The per-pixel `radiance` of a G-buffer traced at `supersample`× the view's resolution, box
+/// filtered down to the view: linear RGBA with straight colour and coverage alpha.
+pub fn straight_rgba(gbuf: &GBuffer, radiance: &[Vec3], supersample: usize) -> Image {
+    let mut premultiplied = Image::new(gbuf.width, gbuf.height, 4);
     for (i, (c, surfel)) in radiance.iter().zip(&gbuf.surfels).enumerate() {
         if surfel.is_some() {
             premultiplied.data[4 * i..4 * i + 4].copy_from_slice(&[c.x, c.y, c.z, 1.0]);
         }
     }
-    premultiplied.downsample_box(s).unpremultiplied()
+    premultiplied.downsample_box(supersample.max(1)).unpremultiplied()
 }
 
