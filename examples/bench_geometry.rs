@@ -41,6 +41,13 @@ struct Args {
     /// Large Steps λ (default: the pass's default).
     #[arg(long)]
     lambda: Option<f64>,
+    /// Views per step (default: the pass's default).
+    #[arg(long)]
+    batch: Option<usize>,
+    /// The last stage's edge in pixel footprints (default: the pass's default).
+    #[arg(long)]
+    final_edge_pixels: Option<f64>,
+
     /// Write the reconstructed mesh (OBJ) here.
     #[arg(long)]
     save: Option<std::path::PathBuf>,
@@ -75,6 +82,13 @@ fn main() -> Result<()> {
     if let Some(l) = args.lambda {
         pass.lambda = l;
     }
+    if let Some(b) = args.batch {
+        pass.batch = b;
+    }
+    if let Some(e) = args.final_edge_pixels {
+        pass.final_edge_pixels = e;
+    }
+
     let t = Instant::now();
     let outcome = obtain_geometry(&spec, &dataset, GeometrySource::Reconstruct, &pass, !args.json)?;
     let total = t.elapsed().as_secs_f64();
