@@ -47,7 +47,6 @@ struct Args {
     /// The last stage's edge in pixel footprints (default: the pass's default).
     #[arg(long)]
     final_edge_pixels: Option<f64>,
-
     /// Write the reconstructed mesh (OBJ) here.
     #[arg(long)]
     save: Option<std::path::PathBuf>,
@@ -88,7 +87,6 @@ fn main() -> Result<()> {
     if let Some(e) = args.final_edge_pixels {
         pass.final_edge_pixels = e;
     }
-
     let t = Instant::now();
     let outcome = obtain_geometry(&spec, &dataset, GeometrySource::Reconstruct, &pass, !args.json)?;
     let total = t.elapsed().as_secs_f64();
