@@ -61,6 +61,14 @@ mod tests {
     use crate::optim::texture::jitter_uv;
     use candle_core::{DType, Device};
 
+    /// `n` spread lookups, their copies jittered by σ = 0.05 (seed `seed`) and random weights in
+    /// [0, 1]: the inputs of a finite-difference check.
+    fn random_lookups(n: usize, seed: u64, dev: &Device) -> Result<(Arc<[[f32; 2]]>, Arc<[[f32; 2]]>, Tensor)> {
+        let uv: Vec<[f32; 2]> = (0..n).map(|i| [(i as f32 * 0.137) % 1.0, (i as f32 * 0.291) % 1.0]).collect();
+        let uvj = jitter_uv(&uv, 0.05, seed);
+        Ok((uv.into(), uvj, Tensor::rand(0f64, 1.0, n, dev)?))
+    }
+
     #[test]
     fn constant_texture_costs_nothing_and_a_ramp_costs_its_slope() -> Result<()> {
         let dev = Device::Cpu;
@@ -80,10 +88,7 @@ mod tests {
     fn gradient_matches_finite_differences() -> anyhow::Result<()> {
         let dev = Device::Cpu;
         let tex = Tensor::rand(0f64, 1.0, (6, 7, 3), &dev)?;
-        let uv: Vec<[f32; 2]> = (0..40).map(|i| [(i as f32 * 0.137) % 1.0, (i as f32 * 0.291) % 1.0]).collect();
-        let uvj = jitter_uv(&uv, 0.05, 9);
-        let uv: Arc<[[f32; 2]]> = uv.into();
-        let w = Tensor::rand(0f64, 1.0, 40, &dev)?;
+        let (uv, uvj, w) = random_lookups(40, 9, &dev)?;
         check_gradient(|x| smoothness_regularizer(&x[0], &uv, &uvj, &w), &[tex], 1e-6, 1e-2)?;
         Ok(())
     }
@@ -107,10 +112,7 @@ mod tests {
         let dev = Device::Cpu;
         let up = Tensor::new(&[0f64, 0.0, 1.0], &dev)?.reshape((1, 1, 3))?.broadcast_as((5, 6, 3))?;
         let map = (Tensor::rand(-0.5f64, 0.5, (5, 6, 3), &dev)? + up)?;
-        let uv: Vec<[f32; 2]> = (0..30).map(|i| [(i as f32 * 0.137) % 1.0, (i as f32 * 0.291) % 1.0]).collect();
-        let uvj = jitter_uv(&uv, 0.05, 3);
-        let uv: Arc<[[f32; 2]]> = uv.into();
-        let w = Tensor::rand(0f64, 1.0, 30, &dev)?;
+        let (uv, uvj, w) = random_lookups(30, 3, &dev)?;
         check_gradient(|x| normal_flatness_regularizer(&x[0], &uv, &uvj, &w), &[map], 1e-6, 1e-2)?;
         Ok(())
     }
