@@ -28,16 +28,13 @@ use super::config::FitConfig;
 use super::history::{trailing_mean, IterationRecord};
 use super::objective::objective;
 use super::settings_diff::differences;
-use super::parameters::{NormalParameter, Parameters};
+use super::parameters::{NormalParameter, Parameters, NORMAL_NAME};
 use super::training_view::TrainingView;
 use super::vertex_refinement::VertexRefinement;
 
 /// Lower clamp of the light's radiance after each step: 0, the physical floor. NVDiffRecMC clamps at
 /// 0.01 (its comment: the light's gradient vanished at 0); docs/model.md, *Differences from NVDiffRecMC*.
 pub const LIGHT_MIN: f64 = 0.0;
-
-/// The normal map's tensor in a checkpoint.
-const NORMAL_KEY: &str = "normal";
 
 pub struct Fit {
     pub config: FitConfig,
@@ -66,7 +63,7 @@ fn optimiser(config: &FitConfig, params: &Parameters) -> Result<Adam> {
     adam.add_group(GroupConfig::new("light", config.lr_light).with_clamp(LIGHT_MIN, f64::MAX), vec![params.light.clone()])?;
     if let (true, Some(n)) = (config.normal_map, &params.normal) {
         // NVDiffRecMC's rate for its normal map: the material's.
-        adam.add_group(GroupConfig::new("normal", config.lr_material).with_channel_clamp(&NORMAL_MIN, &NORMAL_MAX), vec![n.map.clone()])?;
+        adam.add_group(GroupConfig::new(NORMAL_NAME, config.lr_material).with_channel_clamp(&NORMAL_MIN, &NORMAL_MAX), vec![n.map.clone()])?;
     }
     Ok(adam)
 }
@@ -223,7 +220,7 @@ impl Fit {
         set_var(&self.params.ks, &cp.ks).context("checkpoint ks")?;
         set_var(&self.params.light, &cp.light).context("checkpoint light")?;
         if let Some(n) = &self.params.normal {
-            let map = cp.extra.get(NORMAL_KEY).with_context(|| format!("the checkpoint in {} has no normal map", dir.display()))?;
+            let map = cp.extra.get(NORMAL_NAME).with_context(|| format!("the checkpoint in {} has no normal map", dir.display()))?;
             set_var(&n.map, map).context("checkpoint normal map")?;
         }
         self.adam.restore(&cp.adam)?;
@@ -249,7 +246,7 @@ impl Fit {
             None => Vec::new(),
         };
         if let Some(n) = &self.params.normal {
-            extra.push((NORMAL_KEY.to_string(), n.map.as_tensor().clone()));
+            extra.push((NORMAL_NAME.to_string(), n.map.as_tensor().clone()));
         }
         checkpoint::save(dir, self.params.kd.as_tensor(), self.params.ks.as_tensor(), self.params.light.as_tensor(), &state, extra, &mut progress)
     }

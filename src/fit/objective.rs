@@ -158,4 +158,3 @@ pub fn batch_psnr(rgb: &Tensor, target: &Tensor) -> Result<f64> {
     }
     Ok(if count == 0 { f64::NAN } else { -10.0 * (sum / count as f64).log10() })
 }
-

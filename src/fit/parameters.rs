@@ -26,6 +26,9 @@ pub struct Parameters {
     pub normal: Option<NormalParameter>,
 }
 
+/// The normal map's name: its optimiser group and its tensor in a checkpoint.
+pub const NORMAL_NAME: &str = "normal";
+
 pub struct NormalParameter {
     pub map: Var,
     pub tangents: Arc<[[Vec4; 3]]>,
@@ -101,7 +104,7 @@ impl Parameters {
     pub fn named(&self) -> Vec<(&'static str, &Var)> {
         let mut v = vec![("kd", &self.kd), ("ks", &self.ks), ("light", &self.light)];
         if let Some(n) = &self.normal {
-            v.push(("normal", &n.map));
+            v.push((NORMAL_NAME, &n.map));
         }
         v
     }

@@ -16,6 +16,7 @@ use glam::{Vec2, Vec3, Vec4};
 
 use crate::geometry::tangents::interpolate;
 use crate::image::Image;
+use crate::material::texture_maps::sample_atlas;
 
 /// Per-channel bounds of a texel, NVDiffRecMC's `nrm_min`/`nrm_max`: the tilt may go any way, but
 /// the vector never points into the surface.
@@ -36,11 +37,10 @@ impl NormalMap {
         NormalMap { map: Image::filled(res, res, &[0.0, 0.0, 1.0]), tangents }
     }
 
-    /// The texel vector at atlas UV `uv` (bilinear, OBJ convention, clamped like `MaterialTextures::eval`).
+    /// The texel vector at atlas UV `uv` (bilinear, as the kd and ks textures are looked up).
     pub fn lookup(&self, uv: Vec2) -> Vec3 {
-        let (u, v) = (uv.x.clamp(0.0, 1.0), 1.0 - uv.y.clamp(0.0, 1.0));
         let mut m = [0.0f32; 3];
-        self.map.bilinear(u * self.map.width as f32, v * self.map.height as f32, &mut m);
+        sample_atlas(&self.map, uv, &mut m);
         Vec3::from_array(m)
     }
 

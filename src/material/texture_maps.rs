@@ -34,6 +34,13 @@ pub struct MaterialTextures {
     pub normal: Option<NormalMap>,
 }
 
+/// Bilinear lookup of an atlas texture at `uv` (OBJ convention: v up, so row 0 is v = 1; clamped
+/// to [0, 1]), into `out` (one value per channel).
+pub fn sample_atlas(image: &Image, uv: Vec2, out: &mut [f32]) {
+    let (u, v) = (uv.x.clamp(0.0, 1.0), 1.0 - uv.y.clamp(0.0, 1.0));
+    image.bilinear(u * image.width as f32, v * image.height as f32, out);
+}
+
 impl MaterialTextures {
     /// Uniform textures (the usual start of an optimisation).
     pub fn constant(res: usize, kd: Vec3, roughness: f32, metallic: f32) -> Self {
@@ -82,10 +89,9 @@ impl MaterialTextures {
     /// Bilinear lookup at an atlas UV (OBJ convention, v = 0 at the bottom row; clamped to the
     /// edge, not wrapped: an atlas does not tile).
     pub fn eval(&self, uv: Vec2) -> SurfaceParams {
-        let (u, v) = (uv.x.clamp(0.0, 1.0), 1.0 - uv.y.clamp(0.0, 1.0));
         let (mut kd, mut ks) = ([0.0f32; 3], [0.0f32; 3]);
-        self.kd.bilinear(u * self.kd.width as f32, v * self.kd.height as f32, &mut kd);
-        self.ks.bilinear(u * self.ks.width as f32, v * self.ks.height as f32, &mut ks);
+        sample_atlas(&self.kd, uv, &mut kd);
+        sample_atlas(&self.ks, uv, &mut ks);
         SurfaceParams { kd: Vec3::from_array(kd), roughness: ks[1], metallic: ks[2] }
     }
 
