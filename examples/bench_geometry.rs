@@ -47,6 +47,9 @@ struct Args {
     /// The last stage's edge in pixel footprints (default: the pass's default).
     #[arg(long)]
     final_edge_pixels: Option<f64>,
+    /// Every stage at the views' full resolution (the pass's `coarse_views` off).
+    #[arg(long)]
+    full_resolution: bool,
     /// Write the reconstructed mesh (OBJ) here.
     #[arg(long)]
     save: Option<std::path::PathBuf>,
@@ -87,6 +90,7 @@ fn main() -> Result<()> {
     if let Some(e) = args.final_edge_pixels {
         pass.final_edge_pixels = e;
     }
+    pass.coarse_views &= !args.full_resolution;
     let t = Instant::now();
     let outcome = obtain_geometry(&spec, &dataset, GeometrySource::Reconstruct, &pass, !args.json)?;
     let total = t.elapsed().as_secs_f64();
@@ -134,7 +138,10 @@ fn main() -> Result<()> {
         outcome.mesh.triangles.len()
     );
     for st in &p.stages {
-        println!("stage from iteration {}: target edge {:.4}, {} vertices, {} triangles {}", st.first_iteration, st.target_edge, st.vertices, st.triangles, st.note);
+        println!(
+            "stage from iteration {}: target edge {:.4}, {} vertices, {} triangles, views at {:.2} of their resolution {}",
+            st.first_iteration, st.target_edge, st.vertices, st.triangles, st.view_scale, st.note
+        );
     }
     println!("| part | ms per step |\n|---|---:|");
     for (name, s) in split {

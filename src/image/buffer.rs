@@ -152,6 +152,19 @@ impl Image {
         pre.downsample_box(factor).unpremultiplied()
     }
 
+    /// Straight-alpha RGBA resampled to `width`×`height` with a filter as wide as the reduction
+    /// (the `image` crate's triangle filter, whose support grows with the ratio, so every source
+    /// pixel contributes), on premultiplied colour as in [`Image::downsample_straight_alpha`].
+    /// For any ratio, where `downsample_straight_alpha` needs a whole factor.
+    pub fn resized_straight_alpha(&self, width: usize, height: usize) -> anyhow::Result<Image> {
+        anyhow::ensure!(self.channels == 4, "resampling with alpha: {} channels, RGBA expected", self.channels);
+        let pre: Vec<f32> = self.data.chunks_exact(4).flat_map(|p| [p[0] * p[3], p[1] * p[3], p[2] * p[3], p[3]]).collect();
+        let buffer = image::Rgba32FImage::from_raw(self.width as u32, self.height as u32, pre)
+            .ok_or_else(|| anyhow::anyhow!("resampling: {} values for a {}×{} RGBA image", self.data.len(), self.width, self.height))?;
+        let out = image::imageops::resize(&buffer, width as u32, height as u32, image::imageops::FilterType::Triangle);
+        Ok(Image { width, height, channels: 4, data: out.into_raw() }.unpremultiplied())
+    }
+
     /// Average `factor`×`factor` blocks (box filter), e.g. to resolve a supersampled render.
     pub fn downsample_box(&self, factor: usize) -> Image {
         assert!(factor >= 1 && self.width % factor == 0 && self.height % factor == 0);
@@ -178,6 +191,34 @@ impl Image {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn resampling_with_alpha_keeps_the_colour_under_partial_coverage_and_the_covered_area() -> anyhow::Result<()> {
+        // A disc of one colour on a background of another colour with zero alpha: straight colour
+        // averaging would let the background bleed into the outline; premultiplied must not.
+        let (w, h) = (64, 48);
+        let mut img = Image::new(w, h, 4);
+        for y in 0..h {
+            for x in 0..w {
+                let inside = ((x as f32 - 30.0).powi(2) + (y as f32 - 22.0).powi(2)).sqrt() < 15.0;
+                img.pixel_mut(x, y).copy_from_slice(&if inside { [0.2, 0.5, 0.9, 1.0] } else { [5.0, 0.0, 3.0, 0.0] });
+            }
+        }
+        let small = img.resized_straight_alpha(45, 34)?;
+        assert_eq!((small.width, small.height, small.channels), (45, 34, 4));
+        let mean_alpha = |i: &Image| i.data.chunks_exact(4).map(|p| p[3] as f64).sum::<f64>() / i.pixel_count() as f64;
+        assert!((mean_alpha(&small) - mean_alpha(&img)).abs() < 0.01, "{} vs {}", mean_alpha(&small), mean_alpha(&img));
+        let mut partial = 0;
+        for p in small.data.chunks_exact(4).filter(|p| p[3] > 1e-3) {
+            partial += (p[3] < 0.999) as usize;
+            for (c, want) in p[..3].iter().zip([0.2, 0.5, 0.9]) {
+                assert!((c - want).abs() < 1e-4, "{p:?}");
+            }
+        }
+        assert!(partial > 10, "the outline should hold partly covered pixels");
+        assert!(Image::new(4, 4, 3).resized_straight_alpha(2, 2).is_err());
+        Ok(())
+    }
 
     #[test]
     fn bilinear_hits_pixel_centres_and_midpoints() {
