@@ -17,8 +17,13 @@
 //! 5. the position gradient goes through the Large Steps parameterisation (`optim::large_steps`):
 //!    a uniform-Adam step on u = (I + λL)x, then x = (I + λL)⁻¹u. kd and light take Adam steps.
 //!
-//! A healthy mesh: the connectivity is fixed (the hull is remeshed to well-shaped triangles before
-//! the pass), and a step that would flip or collapse a triangle is held back at that triangle's
+//! Stages: the pass runs in stages of fixed connectivity, the mesh remeshed to a finer edge
+//! between them; each stage renders its views at the resolution where its edge spans the last
+//! stage's (`GeometryPassConfig::coarse_views`), so a coarse step costs a fraction of a
+//! full-resolution one.
+//!
+//! A healthy mesh: within a stage the connectivity is fixed (each remesh gives well-shaped
+//! triangles), and a step that would flip or collapse a triangle is held back at that triangle's
 //! vertices or, when that would hold many, shortened (halved; `optim::guarded_step`). If even 1/256 of
 //! the step breaks triangles, the pass stops with an error that names the iteration; it never
 //! carries on with a broken mesh. Degenerate triangles never reach the BVH.
