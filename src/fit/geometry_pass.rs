@@ -89,7 +89,9 @@ pub struct GeometryPassConfig {
     /// Render each stage's views at the resolution where that stage's edge spans
     /// `final_edge_pixels` pixels (the last stage at full resolution, earlier ones coarser):
     /// a coarser triangle gets no more from finer pixels than the last stage's triangle gets
-    /// from full-resolution ones, and the coarse stages then cost a fraction of a step.
+    /// from full-resolution ones, and a coarse step costs a fraction of a full-resolution one.
+    /// Records written before it existed ran without it, hence `false` when absent.
+    #[serde(default)]
     pub coarse_views: bool,
     pub seed: u64,
 }
@@ -694,10 +696,10 @@ mod tests {
 
     #[test]
     fn a_coarse_stage_view_lines_up_with_a_render_at_its_resolution() -> Result<()> {
-        // The resampled target and the resized camera must describe the same picture: the view of
-        // an off-centre sphere at 0.6 of a non-square 100×70 view
-        // against the sphere rendered directly at that size: the covered area and its centroid
-        // must agree (a shift of half a pixel would move the centroid by half a pixel).
+        // The resampled target and the resized camera must describe the same picture: an
+        // off-centre sphere's non-square 100×70 view reduced to 0.6, against the sphere rendered
+        // directly at that size. The covered area and its centroid must agree (a shift of half a
+        // pixel would move the centroid by half a pixel).
         let sphere = crate::geometry::icosphere::icosphere(Vec3::new(0.4, -0.2, 0.1), 0.8, 4);
         let kd = vec![Vec3::splat(0.6); sphere.positions.len()];
         let light = constant_light(1.0);
