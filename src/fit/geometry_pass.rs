@@ -532,7 +532,9 @@ pub fn run_geometry_pass(start: &Mesh, views: &[GeometryView], config: &Geometry
                 }
                 Err(why) => why,
             };
-            targets = view_targets(views, stage_scale(s))?;
+            if stage_scale(s) != stage_scale(s - 1) {
+                targets = view_targets(views, stage_scale(s))?;
+            }
             stages.push(StageRecord { first_iteration: it, target_edge: edges[s], vertices: state.x.len(), triangles: state.triangles.len(), note, view_scale: stage_scale(s) });
             timings.remesh += t.elapsed().as_secs_f64();
         }

@@ -144,12 +144,17 @@ impl Image {
     /// premultiplied colour is averaged, then divided by the averaged alpha (averaging straight
     /// colour would let the background's arbitrary colour bleed into outline pixels).
     pub fn downsample_straight_alpha(&self, factor: usize) -> Image {
+        self.premultiplied().downsample_box(factor).unpremultiplied()
+    }
+
+    /// Straight-alpha RGBA with its colour multiplied by alpha: the form that filters correctly.
+    fn premultiplied(&self) -> Image {
         let mut pre = self.clone();
         for p in pre.data.chunks_exact_mut(4) {
             let a = p[3];
             p[..3].iter_mut().for_each(|c| *c *= a);
         }
-        pre.downsample_box(factor).unpremultiplied()
+        pre
     }
 
     /// Straight-alpha RGBA resampled to `width`×`height` with a filter as wide as the reduction
@@ -158,8 +163,7 @@ impl Image {
     /// For any ratio, where `downsample_straight_alpha` needs a whole factor.
     pub fn resized_straight_alpha(&self, width: usize, height: usize) -> anyhow::Result<Image> {
         anyhow::ensure!(self.channels == 4, "resampling with alpha: {} channels, RGBA expected", self.channels);
-        let pre: Vec<f32> = self.data.chunks_exact(4).flat_map(|p| [p[0] * p[3], p[1] * p[3], p[2] * p[3], p[3]]).collect();
-        let buffer = image::Rgba32FImage::from_raw(self.width as u32, self.height as u32, pre)
+        let buffer = image::Rgba32FImage::from_raw(self.width as u32, self.height as u32, self.premultiplied().data)
             .ok_or_else(|| anyhow::anyhow!("resampling: {} values for a {}×{} RGBA image", self.data.len(), self.width, self.height))?;
         let out = image::imageops::resize(&buffer, width as u32, height as u32, image::imageops::FilterType::Triangle);
         Ok(Image { width, height, channels: 4, data: out.into_raw() }.unpremultiplied())
