@@ -1,5 +1,5 @@
 //! The geometry stage alone on a scene: visual hull, then the geometry pass, with the cost of a
-//! pass step split into its parts (G-buffers, BVH rebuild, shading, backward, update) and the
+//! pass step split into its parts (G-buffers, shading, backward, update) and the
 //! geometry scores of the hull and of the result against the ground truth (when the data has a
 //! mesh and depth maps). For measuring shape recovery without the material passes.
 //!
@@ -109,7 +109,6 @@ fn main() -> Result<()> {
     let per_step = |s: f64| 1e3 * s / steps;
     let split = [
         ("G-buffers", p.timings.gbuffer),
-        ("BVH rebuild", p.timings.bvh_rebuild),
         ("shading", p.timings.shading),
         ("backward", p.timings.backward),
         ("update (Large Steps solve, flip checks)", p.timings.update),

@@ -3,8 +3,9 @@
 //! and their masks, starting from a closed mesh such as the visual hull.
 //!
 //! Each step, for a batch of views:
-//! 1. the current mesh gets a fresh BVH and every view a fresh G-buffer (coverage and surfels
-//!    change with the mesh);
+//! 1. every view gets a fresh G-buffer of the current mesh (coverage and surfels change with the
+//!    mesh), by projecting the triangles (`render::gbuffer_raster`: the ray tracer's hits without a
+//!    BVH to rebuild every step); the views of a step run side by side, each with its own backward;
 //! 2. covered pixels are shaded differentiably in the vertices: `surface_op` (the hit point's
 //!    barycentrics and the shading normal as functions of the positions), `vertex_normals_op`,
 //!    and Lambertian shading under the SH light (`sh_light`);
@@ -26,19 +27,19 @@
 //! triangles), and a step that would flip or collapse a triangle is held back at that triangle's
 //! vertices or, when that would hold many, shortened (halved; `optim::guarded_step`). If even 1/256 of
 //! the step breaks triangles, the pass stops with an error that names the iteration; it never
-//! carries on with a broken mesh. Degenerate triangles never reach the BVH.
+//! carries on with a broken mesh. Degenerate triangles never reach the G-buffer.
 
 use std::sync::Arc;
 use std::time::Instant;
 
 use anyhow::{bail, Context, Result};
+use candle_core::backprop::GradStore;
 use candle_core::{DType, Device, Tensor, Var, D};
+use rayon::prelude::*;
 use glam::{Vec2, Vec3};
 use indicatif::{ProgressBar, ProgressStyle};
-use obvhs::BvhBuildParams;
 use serde::Serialize;
 
-use crate::geometry::bvh::Bvh;
 use crate::geometry::closest_point::SurfaceQuery;
 use crate::geometry::manifold::{check_closed_manifold, signed_volume};
 use crate::geometry::remesh::isotropic_remesh;
@@ -150,10 +151,12 @@ pub struct GeometryStep {
     pub seconds: f64,
 }
 
-/// Wall time of each part of a step, summed over the pass (the bench prints them per step).
+/// Wall time of each part of a step, summed over the pass (the bench prints them per step). The
+/// views of a step run side by side, so their G-buffer, shading and backward times (each measured
+/// on its own thread) share out the wall time of the views' block in proportion; the parts still
+/// add up to the step.
 #[derive(Clone, Debug, Default, Serialize, serde::Deserialize)]
 pub struct GeometryTimings {
-    pub bvh_rebuild: f64,
     pub gbuffer: f64,
     pub shading: f64,
     pub backward: f64,
@@ -222,31 +225,46 @@ pub fn mean_edge_length(mesh: &Mesh) -> f64 {
 }
 
 /// Everything one step needs about one view, then its loss on the tape.
-struct ViewRender {
-    loss: Tensor,
+/// One view's share of a step: its loss (already divided by the batch size), the gradients of that
+/// share, and the wall time of its phases on the thread that ran it.
+struct ViewGradients {
+    loss: f64,
     mask_mse: f64,
+    grads: GradStore,
+    /// G-buffer, shading, backward.
+    seconds: [f64; 3],
 }
 
-#[allow(clippy::too_many_arguments)]
-fn render_view_loss(
-    view: &ViewTarget,
-    mesh: &Mesh,
-    bvh: &Bvh,
-    triangles: &Arc<[[u32; 3]]>,
-    topology: &EdgeTopology,
-    positions: &Tensor,
-    normals: &Tensor,
-    kd: &Tensor,
-    light: &Tensor,
-    background: Vec3,
+/// What every view of a step shares: the mesh at this step and the tensors it is differentiated in.
+struct StepInputs<'a> {
+    mesh: &'a Mesh,
+    triangles: &'a Arc<[[u32; 3]]>,
+    topology: &'a EdgeTopology,
+    positions: &'a Tensor,
+    normals: &'a Tensor,
+    kd: &'a Tensor,
+    light: &'a Tensor,
     mask_weight: f64,
-    timings: &mut GeometryTimings,
-) -> Result<ViewRender> {
+    /// 1 / views in the step: each view's loss is scaled by it, so the views' gradients add up to
+    /// the gradient of the batch's mean.
+    share: f64,
+}
+
+/// One view's scaled loss (`StepInputs::share` of colour L1 + weighted coverage MSE) as a tensor on
+/// the tape, its scaled coverage MSE, and the wall time of its G-buffer and shading.
+struct ViewLossTerm {
+    loss: Tensor,
+    mask_mse: f64,
+    seconds: [f64; 2],
+}
+
+/// Render one view over `background` and score it against its target.
+fn view_loss_term(view: &ViewTarget, step: &StepInputs, background: Vec3) -> Result<ViewLossTerm> {
     let cam = &view.camera;
     let (w, h) = (cam.width, cam.height);
     let t = Instant::now();
-    let gbuf = GBuffer::trace(mesh, bvh, cam);
-    timings.gbuffer += t.elapsed().as_secs_f64();
+    let gbuf = GBuffer::rasterize(step.mesh, cam);
+    let t_gbuffer = t.elapsed().as_secs_f64();
 
     let t = Instant::now();
     let origin = cam.origin().as_dvec3();
@@ -259,26 +277,49 @@ fn render_view_loss(
         }
     }
     let n = pixels.len();
-    let dev = &Device::Cpu;
     let map = PixelMap { pixels: pixels.into(), width: w, height: h };
     let rgb = if n > 0 {
-        let sp = surface_points(SurfacePoints { rays: rays.into(), triangles: triangles.clone() }, positions, normals, kd)?;
+        let sp = surface_points(SurfacePoints { rays: rays.into(), triangles: step.triangles.clone() }, step.positions, step.normals, step.kd)?;
         let normal = sp.narrow(D::Minus1, 0, 3)?;
         let kd_px = sp.narrow(D::Minus1, 3, 3)?;
-        shade_diffuse(&kd_px, &normal, light)?
+        shade_diffuse(&kd_px, &normal, step.light)?
     } else {
-        Tensor::zeros((0, 3), DType::F32, dev)?
+        Tensor::zeros((0, 3), DType::F32, &Device::Cpu)?
     };
     // Colour over the background, coverage as the fourth channel.
     let image = map.composite(&rgb, &background.to_array())?;
-    let aa = antialias(Silhouettes::new(cam, &gbuf, triangles.clone(), topology.clone()), &image, positions)?;
+    let aa = antialias(Silhouettes::new(cam, &gbuf, step.triangles.clone(), step.topology.clone()), &image, step.positions)?;
     // L1 of the tone-mapped colour against the target over the same background, coverage MSE.
     let terms = view_loss(ViewLoss { rgb: view.rgb.clone(), alpha: view.alpha.clone(), background }, &aa)?;
     let (colour, mask) = (terms.get(0)?, terms.get(1)?);
-    let mask_mse = mask.to_scalar::<f32>()? as f64;
-    let loss = (colour + (mask * mask_weight)?)?;
-    timings.shading += t.elapsed().as_secs_f64();
-    Ok(ViewRender { loss, mask_mse })
+    let mask_mse = mask.to_scalar::<f32>()? as f64 * step.share;
+    let loss = ((colour + (mask * step.mask_weight)?)? * step.share)?;
+    Ok(ViewLossTerm { loss, mask_mse, seconds: [t_gbuffer, t.elapsed().as_secs_f64()] })
+}
+
+/// [`view_loss_term`] and its backward. Each view runs its own backward, so the views of a step
+/// run side by side on the cores: a step's candle ops are small and mostly single-threaded, and
+/// one backward over the whole batch would run them one after another.
+fn view_gradients(view: &ViewTarget, step: &StepInputs, background: Vec3) -> Result<ViewGradients> {
+    let term = view_loss_term(view, step, background)?;
+    let t = Instant::now();
+    let grads = term.loss.backward()?;
+    let [t_gbuffer, t_shading] = term.seconds;
+    Ok(ViewGradients { loss: term.loss.to_scalar::<f32>()? as f64, mask_mse: term.mask_mse, grads, seconds: [t_gbuffer, t_shading, t.elapsed().as_secs_f64()] })
+}
+
+/// Add `other`'s gradients of `vars` into `acc`.
+fn accumulate(acc: &mut GradStore, other: &GradStore, vars: &[&Tensor]) -> Result<()> {
+    for v in vars {
+        if let Some(g) = other.get(v) {
+            let sum = match acc.get(v) {
+                Some(a) => (a + g)?,
+                None => g.clone(),
+            };
+            acc.insert(v, sum);
+        }
+    }
+    Ok(())
 }
 
 /// Views per step of a stage whose views are at `scale` of their resolution: `batch` / scale.
@@ -539,10 +580,7 @@ pub fn run_geometry_pass(start: &Mesh, views: &[GeometryView], config: &Geometry
             timings.remesh += t.elapsed().as_secs_f64();
         }
         let t_step = Instant::now();
-        let t = Instant::now();
         let mesh = state.mesh();
-        let bvh = Bvh::build_with(&mesh, BvhBuildParams::fastest_build());
-        timings.bvh_rebuild += t.elapsed().as_secs_f64();
 
         // Views: consecutive slices of a seeded shuffle, one epoch after another.
         let mut rng = Sampler::new(config.seed, 0x6e0_0000 + it as u64);
@@ -560,39 +598,47 @@ pub fn run_geometry_pass(start: &Mesh, views: &[GeometryView], config: &Geometry
 
         let v = state.x.len();
         let positions = Var::from_tensor(&Tensor::from_vec(state.x.iter().flat_map(|p| p.map(|c| c as f32)).collect::<Vec<_>>(), (v, 3), dev)?)?;
+        let t = Instant::now();
         let normals = vertex_normals(state.triangles.clone(), positions.as_tensor())?;
-        let mut losses = Vec::with_capacity(batch.len());
-        let mut mask_mse = 0.0;
-        for &i in &batch {
-            let bg = Vec3::new(rng.next_f32(), rng.next_f32(), rng.next_f32());
-            let r = render_view_loss(
-                &targets[i],
-                &mesh,
-                &bvh,
-                &state.triangles,
-                &state.topology,
-                positions.as_tensor(),
-                &normals,
-                state.kd.as_tensor(),
-                light.as_tensor(),
-                bg,
-                config.mask_weight,
-                &mut timings,
-            )?;
-            losses.push(r.loss);
-            mask_mse += r.mask_mse / batch.len() as f64;
+        let backgrounds: Vec<Vec3> = batch.iter().map(|_| Vec3::new(rng.next_f32(), rng.next_f32(), rng.next_f32())).collect();
+        let inputs = StepInputs {
+            mesh: &mesh,
+            triangles: &state.triangles,
+            topology: &state.topology,
+            positions: positions.as_tensor(),
+            normals: &normals,
+            kd: state.kd.as_tensor(),
+            light: light.as_tensor(),
+            mask_weight: config.mask_weight,
+            share: 1.0 / batch.len() as f64,
+        };
+        let per_view: Vec<ViewGradients> = batch.par_iter().zip(&backgrounds).map(|(&i, &bg)| view_gradients(&targets[i], &inputs, bg)).collect::<Result<_>>()?;
+        // The views ran side by side: their phases' thread times share out the block's wall time.
+        let (wall, phases) = (t.elapsed().as_secs_f64(), per_view.iter().fold([0.0; 3], |acc, r| [0, 1, 2].map(|k| acc[k] + r.seconds[k])));
+        let to_wall = wall / phases.iter().sum::<f64>().max(f64::MIN_POSITIVE);
+        timings.gbuffer += phases[0] * to_wall;
+        timings.shading += phases[1] * to_wall;
+        timings.backward += phases[2] * to_wall;
+
+        let vars = [positions.as_tensor(), state.kd.as_tensor(), light.as_tensor()];
+        let mut per_view = per_view.into_iter();
+        let first = per_view.next().context("geometry pass: a step with no views")?;
+        let (mut loss_value, mut mask_mse, mut grads) = (first.loss, first.mask_mse, first.grads);
+        for r in per_view {
+            accumulate(&mut grads, &r.grads, &vars)?;
+            loss_value += r.loss;
+            mask_mse += r.mask_mse;
         }
-        let mut loss = (Tensor::stack(&losses, 0)?.sum_all()? / batch.len() as f64)?;
         if config.kd_smoothness > 0.0 {
-            loss = (loss + (state.kd_reg.apply(state.kd.as_tensor())? * config.kd_smoothness)?)?;
+            let t = Instant::now();
+            let reg = (state.kd_reg.apply(state.kd.as_tensor())? * config.kd_smoothness)?;
+            loss_value += reg.to_scalar::<f32>()? as f64;
+            accumulate(&mut grads, &reg.backward()?, &vars)?;
+            timings.backward += t.elapsed().as_secs_f64();
         }
-        let loss_value = loss.to_scalar::<f32>()? as f64;
         if !loss_value.is_finite() {
             bail!("geometry pass: the loss became non-finite at iteration {it}");
         }
-        let t = Instant::now();
-        let grads = loss.backward()?;
-        timings.backward += t.elapsed().as_secs_f64();
 
         let t = Instant::now();
         let lr_factor = state.adam.lr_factor();
@@ -657,8 +703,7 @@ pub fn interpolate(mesh: &Mesh, attr: &[Vec3], t: usize, bary: Vec2) -> Vec3 {
 pub fn render_sh(mesh: &Mesh, vertex_kd: &[Vec3], light_sh: &[f32], camera: &Camera, supersample: usize) -> Result<Image> {
     let s = supersample.max(1);
     let big = camera.resized(camera.width * s, camera.height * s);
-    let bvh = Bvh::build(mesh);
-    let gbuf = GBuffer::trace(mesh, &bvh, &big);
+    let gbuf = GBuffer::rasterize(mesh, &big);
     let hits: Vec<(usize, Vec3, Vec3)> = gbuf
         .surfels
         .iter()
@@ -684,6 +729,60 @@ pub fn render_sh(mesh: &Mesh, vertex_kd: &[Vec3], light_sh: &[f32], camera: &Cam
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_views_gradients_add_up_to_the_gradient_of_the_batch_loss() -> Result<()> {
+        // Each view runs its own backward and the step adds the results; that must be the
+        // gradient of the batch's mean loss taken in one backward. Two views of a sphere, the
+        // mesh a coarser sphere off-centre (so outlines and shading both give gradients).
+        let truth = crate::geometry::icosphere::icosphere(Vec3::ZERO, 0.8, 3);
+        let mesh = crate::geometry::icosphere::icosphere(Vec3::new(0.05, -0.03, 0.02), 0.75, 2);
+        let kd_truth = vec![Vec3::new(0.7, 0.5, 0.3); truth.positions.len()];
+        let light_sh = constant_light(1.0);
+        let views: Vec<GeometryView> = [Vec3::new(0.0, -3.0, 1.0), Vec3::new(2.5, 1.0, -1.5)]
+            .iter()
+            .enumerate()
+            .map(|(k, &eye)| {
+                let camera = Camera::look_at(eye, Vec3::ZERO, Vec3::Z, 0.8, 40, 32);
+                Ok(GeometryView { name: format!("v{k}"), target: render_sh(&truth, &kd_truth, &light_sh, &camera, 2)?, camera })
+            })
+            .collect::<Result<_>>()?;
+        let targets = view_targets(&views, 1.0)?;
+        let dev = &Device::Cpu;
+        let triangles: Arc<[[u32; 3]]> = mesh.triangles.clone().into();
+        let topology = EdgeTopology::new(&triangles);
+        let positions = Var::from_tensor(&Tensor::from_vec(mesh.positions.iter().flat_map(|p| p.to_array()).collect::<Vec<_>>(), (mesh.positions.len(), 3), dev)?)?;
+        let kd = Var::from_tensor(&Tensor::full(0.4f32, (mesh.positions.len(), 3), dev)?)?;
+        let light = Var::from_tensor(&Tensor::from_vec(light_sh.clone(), (SH_COEFFICIENTS, 3), dev)?)?;
+        let normals = vertex_normals(triangles.clone(), positions.as_tensor())?;
+        let inputs = StepInputs {
+            mesh: &mesh,
+            triangles: &triangles,
+            topology: &topology,
+            positions: positions.as_tensor(),
+            normals: &normals,
+            kd: kd.as_tensor(),
+            light: light.as_tensor(),
+            mask_weight: 2.0,
+            share: 0.5,
+        };
+        let backgrounds = [Vec3::new(0.2, 0.9, 0.4), Vec3::new(0.6, 0.1, 0.8)];
+        let joint = (view_loss_term(&targets[0], &inputs, backgrounds[0])?.loss + view_loss_term(&targets[1], &inputs, backgrounds[1])?.loss)?.backward()?;
+        let mut per_view: Vec<ViewGradients> = (0..2).into_par_iter().map(|k| view_gradients(&targets[k], &inputs, backgrounds[k])).collect::<Result<_>>()?;
+        let vars = [positions.as_tensor(), kd.as_tensor(), light.as_tensor()];
+        let second = per_view.pop().context("two views")?;
+        let mut summed = per_view.pop().context("two views")?.grads;
+        accumulate(&mut summed, &second.grads, &vars)?;
+        for (name, v) in ["positions", "kd", "light"].iter().zip(vars) {
+            let (a, b) = (joint.get(v).context("joint gradient")?, summed.get(v).context("summed gradient")?);
+            let (a, b) = (a.flatten_all()?.to_vec1::<f32>()?, b.flatten_all()?.to_vec1::<f32>()?);
+            let scale = a.iter().fold(0.0f32, |m, x| m.max(x.abs()));
+            assert!(scale > 0.0, "{name}: no gradient");
+            let worst = a.iter().zip(&b).fold(0.0f32, |m, (x, y)| m.max((x - y).abs()));
+            assert!(worst <= 1e-5 * scale, "{name}: summed per-view gradients differ from the joint one by {worst} (largest {scale})");
+        }
+        Ok(())
+    }
 
     #[test]
     fn stage_edges_step_geometrically_and_never_coarsen() {

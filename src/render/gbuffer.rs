@@ -137,7 +137,7 @@ impl Surfel {
 }
 
 /// The surfel at barycentrics `bary` of triangle `tri`, seen along `dir` from `origin`.
-fn surfel_at(mesh: &Mesh, tri: u32, bary: glam::Vec2, dir: Vec3, origin: Vec3, forward: Vec3) -> Surfel {
+pub(crate) fn surfel_at(mesh: &Mesh, tri: u32, bary: glam::Vec2, dir: Vec3, origin: Vec3, forward: Vec3) -> Surfel {
     let [i0, i1, i2] = mesh.triangles[tri as usize].map(|i| i as usize);
     let w = Vec3::new(1.0 - bary.x - bary.y, bary.x, bary.y);
     let interp3 = |a: &[Vec3]| w.x * a[i0] + w.y * a[i1] + w.z * a[i2];

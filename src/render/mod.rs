@@ -3,6 +3,7 @@
 pub mod denoise;
 pub mod effects;
 pub mod gbuffer;
+pub mod gbuffer_raster;
 pub mod montecarlo;
 pub mod montecarlo_op;
 pub mod sh_light;
