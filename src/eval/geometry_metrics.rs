@@ -29,6 +29,7 @@ use crate::geometry::Mesh;
 use crate::image::Image;
 use crate::render::gbuffer::GBuffer;
 use crate::scene::dataset::View;
+use crate::scene::camera::Projector;
 use crate::scene::Camera;
 
 /// A pixel is inside the silhouette when the object covers more than half of it: the symmetric
@@ -43,6 +44,7 @@ pub struct JudgeView {
     pub camera: Camera,
     pub depth: Image,
     pub alpha: Image,
+    projector: Projector,
 }
 
 impl JudgeView {
@@ -60,7 +62,7 @@ impl JudgeView {
                 );
             }
         }
-        Ok(JudgeView { name, camera, depth, alpha })
+        Ok(JudgeView { name, projector: camera.projector(), camera, depth, alpha })
     }
 
     /// A dataset view's `depth.exr` and alpha.
@@ -76,7 +78,7 @@ impl JudgeView {
     /// behind the depth map by more than `tolerance` (the view sees the point or what is in front
     /// of it within `tolerance`). The pixel is the one the point falls in (no interpolation).
     pub fn judges(&self, p: Vec3, tolerance: f32) -> bool {
-        let (xy, z) = self.camera.project(p);
+        let (xy, z) = self.projector.project(p);
         let (w, h) = (self.camera.width, self.camera.height);
         if !(z > 0.0 && xy.x >= 0.0 && xy.y >= 0.0 && xy.x < w as f32 && xy.y < h as f32) {
             return false;

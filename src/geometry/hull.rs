@@ -42,7 +42,7 @@ use std::time::Instant;
 use anyhow::{bail, Result};
 use baby_shark::exports::nalgebra::Vector3;
 use baby_shark::voxel::prelude::{MarchingCubesMesher, Volume};
-use glam::{Mat3, Mat4, Vec2, Vec3};
+use glam::{Mat3, Vec2, Vec3};
 use rayon::prelude::*;
 
 use crate::geometry::manifold::{check_closed_manifold, orient_consistently, signed_volume, split_pinched_vertices};
@@ -51,7 +51,7 @@ use crate::geometry::remesh::isotropic_remesh;
 use crate::geometry::{Mesh, Part};
 use crate::image::Image;
 use crate::material::{BaseColor, PartMaterial, Scalar};
-use crate::scene::camera::median_pixel_footprint;
+use crate::scene::camera::{median_pixel_footprint, Projector};
 use crate::scene::dataset::mask_pixels;
 use crate::scene::Camera;
 
@@ -347,9 +347,7 @@ fn check_masks(views: &[MaskView], threshold: f32) -> Result<Vec<(usize, String)
 
 /// One view's silhouette cone as a distance field.
 struct ViewField {
-    w2c: Mat4,
-    focal: f32,
-    centre: Vec2,
+    projector: Projector,
     distance: MaskDistance,
     /// The mask reaches the frame's border: the object may continue outside the frame.
     touches_border: bool,
@@ -362,9 +360,7 @@ impl ViewField {
         let touches_border =
             (0..w).any(|x| inside[x] || inside[(h - 1) * w + x]) || (0..h).any(|y| inside[y * w] || inside[y * w + w - 1]);
         ViewField {
-            w2c: view.camera.c2w.inverse(),
-            focal: view.camera.focal(),
-            centre: Vec2::new(0.5 * w as f32, 0.5 * h as f32),
+            projector: view.camera.projector(),
             distance: MaskDistance::new(&inside, w, h),
             touches_border,
         }
@@ -372,18 +368,15 @@ impl ViewField {
 
     /// World distance from `p` to the silhouette cone (positive outside), `None` when the view cannot tell.
     fn at(&self, p: Vec3) -> Option<f32> {
-        let q = self.w2c.transform_point3(p);
-        let depth = -q.z;
+        let (xy, depth) = self.projector.project(p);
         if depth <= 0.0 {
             return if self.touches_border { None } else { Some(FAR_OUTSIDE) };
         }
-        let x = self.centre.x + self.focal * q.x / depth;
-        let y = self.centre.y - self.focal * q.y / depth;
-        let (d, in_image) = self.distance.sample(x, y);
+        let (d, in_image) = self.distance.sample(xy.x, xy.y);
         if !in_image && self.touches_border {
             return None;
         }
-        Some((d * depth / self.focal).min(FAR_OUTSIDE))
+        Some((d * depth / self.projector.focal).min(FAR_OUTSIDE))
     }
 }
 
@@ -428,7 +421,7 @@ fn object_centre_and_radius(views: &[MaskView], fields: &[ViewField]) -> Result<
         let m = Mat3::IDENTITY - Mat3::from_cols(d * d.x, d * d.y, d * d.z);
         a += m;
         b += m * o;
-        rays.push((o, spread / f.focal));
+        rays.push((o, spread / f.projector.focal));
     }
     let scale = (a.x_axis.x + a.y_axis.y + a.z_axis.z) / 3.0;
     if a.determinant().abs() < 1e-4 * scale.powi(3) {

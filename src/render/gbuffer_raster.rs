@@ -79,11 +79,12 @@ impl GBuffer {
         let forward = camera.forward();
         let mut surfels = vec![None; width * height];
         if width > 0 && height > 0 {
+            let projector = camera.projector();
             let projected: Vec<((f32, f32), f32)> = mesh
                 .positions
                 .par_iter()
                 .map(|&p| {
-                    let (xy, depth) = camera.project(p);
+                    let (xy, depth) = projector.project(p);
                     ((xy.x, xy.y), depth)
                 })
                 .collect();

@@ -84,14 +84,14 @@ impl Camera {
     }
 
     /// Continuous pixel coordinates of a world point and its planar depth along the view axis
-    /// (positive in front of the camera).
+    /// (positive in front of the camera). For many points, take [`Camera::projector`] once.
     pub fn project(&self, p: Vec3) -> (Vec2, f32) {
-        let q = self.c2w.inverse().transform_point3(p);
-        let depth = -q.z;
-        let f = self.focal();
-        let x = 0.5 * self.width as f32 + f * q.x / depth;
-        let y = 0.5 * self.height as f32 - f * q.y / depth;
-        (Vec2::new(x, y), depth)
+        self.projector().project(p)
+    }
+
+    /// The projection with the world-to-camera transform inverted once, for projecting many points.
+    pub fn projector(&self) -> Projector {
+        Projector { w2c: self.c2w.inverse(), focal: self.focal(), centre: Vec2::new(0.5 * self.width as f32, 0.5 * self.height as f32) }
     }
 
     /// World-to-camera rotation: takes world vectors into the OpenGL camera frame
@@ -108,6 +108,27 @@ impl Camera {
     /// The same camera at another resolution (same field of view).
     pub fn resized(&self, width: usize, height: usize) -> Camera {
         Camera { width, height, ..self.clone() }
+    }
+}
+
+/// A camera's pinhole projection, ready to apply: [`Camera::project`] without inverting the pose
+/// per point.
+#[derive(Clone, Copy, Debug)]
+pub struct Projector {
+    pub w2c: Mat4,
+    /// Focal length in pixels.
+    pub focal: f32,
+    /// The image centre in pixel coordinates (the principal point).
+    pub centre: Vec2,
+}
+
+impl Projector {
+    /// Continuous pixel coordinates (x right, y down) of a world point and its planar depth along
+    /// the view axis (positive in front of the camera).
+    pub fn project(&self, p: Vec3) -> (Vec2, f32) {
+        let q = self.w2c.transform_point3(p);
+        let depth = -q.z;
+        (Vec2::new(self.centre.x + self.focal * q.x / depth, self.centre.y - self.focal * q.y / depth), depth)
     }
 }
 
