@@ -7,9 +7,9 @@
 //! So each triangle is projected, and the pixel centres inside its screen bounds (widened by
 //! [`BOUNDS_SLACK`]) are tested with the ray tracer's own ray/triangle test
 //! (`geometry::bvh::intersect_triangle`, Möller–Trumbore on the pixel's `Camera::ray_dir`); the
-//! nearest hit per pixel wins. Because the test, the ray and the tie-breaking (a later triangle
-//! replaces an equal t) are the tracer's, the result is the tracer's hit for hit, up to which of two
-//! triangles that meet a ray at exactly the same t is kept. A triangle with a vertex on or behind
+//! nearest hit per pixel wins. Because the test and the ray are the tracer's, the result is the
+//! tracer's hit for hit, up to which of two triangles that meet a ray at exactly the same t is kept
+//! (here the later in triangle order, there the later in traversal order). A triangle with a vertex on or behind
 //! the camera's plane has no finite projection; it is tested at every pixel of the image, which stays
 //! exact and only costs time when the camera is inside the mesh.
 //!
@@ -97,11 +97,18 @@ impl GBuffer {
                     bounds(t as u32, c.map(|v| v.0), c.map(|v| v.1), width, height)
                 })
                 .collect();
-            surfels.par_chunks_mut(BAND_ROWS * width).enumerate().for_each(|(band, rows)| {
+            // Each band's triangles, in triangle order: the result does not depend on the threads.
+            let mut in_band: Vec<Vec<u32>> = vec![Vec::new(); height.div_ceil(BAND_ROWS)];
+            for (i, b) in boxes.iter().enumerate() {
+                for list in &mut in_band[b.y0 / BAND_ROWS..=b.y1 / BAND_ROWS] {
+                    list.push(i as u32);
+                }
+            }
+            surfels.par_chunks_mut(BAND_ROWS * width).zip(in_band.par_iter()).enumerate().for_each(|(band, (rows, list))| {
                 let (top, bottom) = (band * BAND_ROWS, (band * BAND_ROWS + rows.len() / width).saturating_sub(1));
                 let mut best: Vec<Option<(u32, f32, glam::Vec2)>> = vec![None; rows.len()];
                 let mut dirs: Vec<Option<Vec3>> = vec![None; rows.len()];
-                for b in boxes.iter().filter(|b| b.y0 <= bottom && b.y1 >= top) {
+                for b in list.iter().map(|&i| &boxes[i as usize]) {
                     let p = mesh.triangles[b.triangle as usize].map(|i| mesh.positions[i as usize]);
                     for y in b.y0.max(top)..=b.y1.min(bottom) {
                         for x in b.x0..=b.x1 {
