@@ -223,3 +223,42 @@ fn textures_survive_save_and_load() {
 fn rng_next(s: &mut reconstruct::rng::Sampler) -> f32 {
     s.next_f32()
 }
+
+/// A shallow spiral ramp of `turns` turns in `segments` quads: every triangle faces up (within a
+/// few degrees), so one chart takes the whole ramp, and its projection onto the chart's plane
+/// folds over itself wherever one turn lies above another, without any triangle flipping.
+fn spiral_ramp(m: &mut Mesh, centre: Vec3, turns: f32, segments: u32) {
+    let base = m.positions.len() as u32;
+    for i in 0..=segments {
+        let a = turns * std::f32::consts::TAU * i as f32 / segments as f32;
+        for r in [0.5f32, 1.0] {
+            m.positions.push(centre + Vec3::new(r * a.cos(), r * a.sin(), 0.02 * a));
+            m.normals.push(Vec3::Z);
+            m.uvs.push(Vec2::ZERO);
+        }
+    }
+    for i in 0..segments {
+        let (inner, outer, inner2, outer2) = (base + 2 * i, base + 2 * i + 1, base + 2 * i + 2, base + 2 * i + 3);
+        m.triangles.extend([[inner, outer, outer2], [inner, outer2, inner2]]);
+        m.triangle_part.extend([0, 0]);
+    }
+}
+
+#[test]
+fn charts_that_fold_over_themselves_are_split_until_clean() {
+    // A finely cut ramp and a coarse one of a few triangles: where one turn lies over another,
+    // the upper turn's triangles must get a chart of their own.
+    let mut m = Mesh { parts: vec![reconstruct::geometry::Part { name: "ramp".into(), material: 0, has_uv: false }], materials: vec![constant("ramp", Vec3::splat(0.5), 0.5, 0.0)], ..Mesh::default() };
+    spiral_ramp(&mut m, Vec3::ZERO, 1.6, 400);
+    spiral_ramp(&mut m, Vec3::new(3.0, 0.0, 0.0), 1.6, 9);
+    m.validate().unwrap();
+    let atlas = build(&m, 256).unwrap();
+    assert_eq!(own_uvs_problem(&atlas.mesh), None);
+    for t in 0..m.triangles.len() {
+        assert_eq!(atlas.mesh.triangle_positions(t), m.triangle_positions(t));
+    }
+    match atlas.source {
+        AtlasSource::Generated { charts, .. } => assert!(charts >= 4, "{charts} charts: each ramp must have been split"),
+        other => panic!("expected a generated atlas, got {other:?}"),
+    }
+}

@@ -5,6 +5,9 @@
 //! same UV square) an atlas is generated: charts of connected triangles with similar normals,
 //! each projected onto the plane of its average normal, scaled to one common texel density and
 //! packed on shelves with padding so that bilinear lookups never reach a neighbouring chart.
+//! A chart whose projection flips a triangle is halved; one that folds over itself (a
+//! reconstructed mesh's small creases) hands the triangles that land on its own earlier ones to a
+//! chart of their own; both repeat until no texel is covered twice.
 
 use std::collections::HashMap;
 
@@ -25,6 +28,12 @@ const EDGE_TOLERANCE: f32 = 1e-3;
 const CHART_CONE_DEGREES: f32 = 35.0;
 /// Charts larger than this are cut (large charts pack badly and drift in curvature).
 const MAX_CHART_TRIANGLES: usize = 3000;
+/// Rounds of projecting, splitting and packing before the atlas gives up. A chart whose
+/// projection flips is halved per round, so log2(MAX_CHART_TRIANGLES) ≈ 12 rounds bring it down to
+/// single triangles; a fold of k layers sheds one layer per round, and detaching layers changes
+/// the packing's texel size, which can reveal a fold too small to cover a texel before (the
+/// default scene's reconstructed mesh needed 9 rounds). Twice the halving's count leaves room for both.
+const SPLIT_ROUNDS: usize = 24;
 /// Empty texels around every chart's content; two neighbours are 2·PADDING apart.
 pub const PADDING: usize = 2;
 /// Fraction of the atlas the charts' triangles should cover when the packing allows it.
@@ -101,6 +110,9 @@ struct OverlapReport {
     /// Owners involved in overlaps (each pair once, first owner, second owner).
     pairs: Vec<(u32, u32)>,
     first_pair: Option<(u32, u32)>,
+    /// Triangles that cover a texel another triangle of the same owner covered first (in triangle
+    /// order within a band): removing them leaves every owner free of overlaps with itself.
+    self_overlapping: Vec<u32>,
 }
 
 /// Rasterise the UV triangles on a `res`² grid (texel centres strictly inside, by more than
@@ -110,18 +122,20 @@ fn overlap_report(mesh: &Mesh, owner: &[u32], res: usize) -> OverlapReport {
     let texel = |uv: Vec2| Vec2::new(uv.x * res as f32, (1.0 - uv.y) * res as f32);
     let tris: Vec<[Vec2; 3]> = mesh.triangles.iter().map(|t| t.map(|i| texel(mesh.uvs[i as usize]))).collect();
     let bands = band_lists(&tris, res, 0.0);
-    // Per band: (covered texels, overlapping texels, owner pairs that overlap).
-    type BandCount = (usize, usize, Vec<(u32, u32)>);
+    // Per band: (covered texels, overlapping texels, owner pairs that overlap, later triangles of
+    // overlaps within one owner).
+    type BandCount = (usize, usize, Vec<(u32, u32)>, Vec<u32>);
     let results: Vec<BandCount> = bands
         .par_iter()
         .enumerate()
         .map(|(band, list)| {
             let y0 = band * BAND;
             let rows = BAND.min(res - y0);
+            // The first triangle covering each texel.
             let mut first = vec![u32::MAX; rows * res];
             // A texel covered three times is one overlapping texel, not two.
             let mut counted = vec![false; rows * res];
-            let (mut covered, mut overlapping, mut pairs) = (0, 0, Vec::new());
+            let (mut covered, mut overlapping, mut pairs, mut later) = (0, 0, Vec::new(), Vec::new());
             for &t in list {
                 let [a, b, c] = tris[t as usize];
                 let area2 = (b - a).perp_dot(c - a);
@@ -143,26 +157,29 @@ fn overlap_report(mesh: &Mesh, owner: &[u32], res: usize) -> OverlapReport {
                         let idx = (y - y0) * res + x;
                         let slot = &mut first[idx];
                         if *slot == u32::MAX {
-                            *slot = owner[t as usize];
+                            *slot = t;
                             covered += 1;
                         } else {
                             if !counted[idx] {
                                 counted[idx] = true;
                                 overlapping += 1;
                             }
-                            let pair = (*slot, owner[t as usize]);
+                            let pair = (owner[*slot as usize], owner[t as usize]);
                             if !pairs.contains(&pair) {
                                 pairs.push(pair);
+                            }
+                            if pair.0 == pair.1 && *slot != t && later.last() != Some(&t) {
+                                later.push(t);
                             }
                         }
                     }
                 }
             }
-            (covered, overlapping, pairs)
+            (covered, overlapping, pairs, later)
         })
         .collect();
-    let mut report = OverlapReport { covered: 0, overlapping: 0, pairs: Vec::new(), first_pair: None };
-    for (c, o, pairs) in results {
+    let mut report = OverlapReport { covered: 0, overlapping: 0, pairs: Vec::new(), first_pair: None, self_overlapping: Vec::new() };
+    for (c, o, pairs, later) in results {
         report.covered += c;
         report.overlapping += o;
         for p in pairs {
@@ -170,7 +187,10 @@ fn overlap_report(mesh: &Mesh, owner: &[u32], res: usize) -> OverlapReport {
                 report.pairs.push(p);
             }
         }
+        report.self_overlapping.extend(later);
     }
+    report.self_overlapping.sort_unstable();
+    report.self_overlapping.dedup();
     report.first_pair = report.pairs.first().copied();
     report
 }
@@ -341,7 +361,7 @@ fn generate(mesh: &Mesh, res: usize, reason: String) -> Result<Atlas> {
     let mut charts = grow_charts(mesh, &unit, &degenerate, &neighbours);
 
     // Project, split charts whose projection flips or folds over itself, pack; repeat until clean.
-    for _round in 0..12 {
+    for _round in 0..SPLIT_ROUNDS {
         let projected: Vec<Projected> = charts.par_iter().map(|c| project(mesh, c, &normals, &degenerate)).collect();
         let flipped: Vec<usize> = projected
             .iter()
@@ -367,16 +387,20 @@ fn generate(mesh: &Mesh, res: usize, reason: String) -> Result<Atlas> {
         };
         let report = overlap_report(&out, &owner, res);
         if report.overlapping > 0 {
-            let mut bad: Vec<usize> = report.pairs.iter().flat_map(|&(a, b)| [a as usize, b as usize]).collect();
+            // A chart that folds over itself gives the triangles that land on its own earlier
+            // ones a chart of their own (the fold's upper layer, typically a few triangles), so
+            // the rest stays whole; charts that overlap others (which packing should never cause)
+            // are halved.
+            let mut bad: Vec<usize> = report.pairs.iter().filter(|(a, b)| a != b).flat_map(|&(a, b)| [a as usize, b as usize]).collect();
             bad.sort_unstable();
             bad.dedup();
-            charts = split_charts(charts, &bad);
+            charts = detach(split_charts(charts, &bad), &report.self_overlapping);
             continue;
         }
         let stats = measure(&out, &charts, texels_per_unit);
         return Ok(Atlas { mesh: out, source: AtlasSource::Generated { reason, charts: charts.len() }, resolution: res, stats });
     }
-    bail!("UV atlas: charts still overlap after 12 rounds of splitting (mesh with self-intersecting folds?)")
+    bail!("UV atlas: charts still overlap after {SPLIT_ROUNDS} rounds of splitting (mesh with self-intersecting folds?)")
 }
 
 /// Triangles across each welded (by exact position) edge, for manifold edges of one part.
@@ -487,6 +511,17 @@ fn grow_charts(mesh: &Mesh, unit: &[Vec3], degenerate: &[bool], neighbours: &[[u
 
 /// Cut each listed chart in two halves of its flood-fill order (the first half is a disc around
 /// the seed, so both halves stay compact).
+/// Moves the triangles `moving` (sorted) out of their charts: those of each chart form a new chart
+/// beside it. A chart left empty disappears.
+fn detach(charts: Vec<Vec<u32>>, moving: &[u32]) -> Vec<Vec<u32>> {
+    let mut out = Vec::with_capacity(charts.len() + moving.len().min(charts.len()));
+    for c in charts {
+        let (moved, kept): (Vec<u32>, Vec<u32>) = c.into_iter().partition(|t| moving.binary_search(t).is_ok());
+        out.extend([kept, moved].into_iter().filter(|c| !c.is_empty()));
+    }
+    out
+}
+
 fn split_charts(charts: Vec<Vec<u32>>, which: &[usize]) -> Vec<Vec<u32>> {
     let mut out = Vec::with_capacity(charts.len() + which.len());
     for (i, mut c) in charts.into_iter().enumerate() {
