@@ -35,9 +35,9 @@ use std::time::Instant;
 use anyhow::{bail, Context, Result};
 use candle_core::backprop::GradStore;
 use candle_core::{DType, Device, Tensor, Var, D};
-use rayon::prelude::*;
 use glam::{Vec2, Vec3};
 use indicatif::{ProgressBar, ProgressStyle};
+use rayon::prelude::*;
 use serde::Serialize;
 
 use crate::geometry::closest_point::SurfaceQuery;
@@ -224,7 +224,6 @@ pub fn mean_edge_length(mesh: &Mesh) -> f64 {
     sum / (3 * mesh.triangles.len()).max(1) as f64
 }
 
-/// Everything one step needs about one view, then its loss on the tape.
 /// One view's share of a step: its loss (already divided by the batch size), the gradients of that
 /// share, and the wall time of its phases on the thread that ran it.
 struct ViewGradients {
