@@ -509,8 +509,6 @@ fn grow_charts(mesh: &Mesh, unit: &[Vec3], degenerate: &[bool], neighbours: &[[u
     charts
 }
 
-/// Cut each listed chart in two halves of its flood-fill order (the first half is a disc around
-/// the seed, so both halves stay compact).
 /// Moves the triangles `moving` (sorted) out of their charts: those of each chart form a new chart
 /// beside it. A chart left empty disappears.
 fn detach(charts: Vec<Vec<u32>>, moving: &[u32]) -> Vec<Vec<u32>> {
@@ -522,6 +520,9 @@ fn detach(charts: Vec<Vec<u32>>, moving: &[u32]) -> Vec<Vec<u32>> {
     out
 }
 
+/// Cut each listed chart in two halves of its flood-fill order (the first half is a disc around
+/// the seed, so the halves are compact when the chart is; a chart around a hole gives a ring as
+/// its second half, which is why folds are detached, not halved).
 fn split_charts(charts: Vec<Vec<u32>>, which: &[usize]) -> Vec<Vec<u32>> {
     let mut out = Vec::with_capacity(charts.len() + which.len());
     for (i, mut c) in charts.into_iter().enumerate() {
