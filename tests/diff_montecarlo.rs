@@ -23,13 +23,18 @@ use reconstruct::scene::Camera;
 
 /// A ball resting over a disc: shadows, grazing silhouettes.
 fn scene() -> (Mesh, Bvh, GBuffer) {
+    scene_at(10)
+}
+
+/// The same scene seen at `res`² pixels.
+fn scene_at(res: usize) -> (Mesh, Bvh, GBuffer) {
     let mut b = MeshBuilder::new();
     let part = b.part(PartMaterial { name: "m".into(), base_color: BaseColor::Constant(Vec3::splat(0.5)), roughness: Scalar::Constant(0.5), metallic: Scalar::Constant(0.0) });
     b.ellipsoid(part, Vec3::new(0.0, 0.0, 0.45), Vec3::splat(0.4), Quat::IDENTITY, 16, 8);
     b.cylinder(part, Vec2::ZERO, 1.0, -0.05, 0.0, 24);
     let mesh = b.build();
     let bvh = Bvh::build(&mesh);
-    let camera = Camera::look_at(Vec3::new(2.2, 0.6, 1.2), Vec3::new(0.0, 0.0, 0.3), Vec3::Z, 0.8, 10, 10);
+    let camera = Camera::look_at(Vec3::new(2.2, 0.6, 1.2), Vec3::new(0.0, 0.0, 0.3), Vec3::Z, 0.8, res, res);
     let gbuf = GBuffer::trace(&mesh, &bvh, &camera);
     (mesh, bvh, gbuf)
 }
@@ -101,7 +106,10 @@ fn forward_matches_the_renderer_with_and_without_shadows_and_bounces() -> anyhow
 
 /// FD check of kd, ks and light for one material/light setup (samples fixed at these values).
 fn check(kd: Vec<[f32; 3]>, ks: Vec<[f32; 3]>, light: CubeMap, s: McSettings, tol: f64) -> anyhow::Result<()> {
-    let (mesh, bvh, g) = scene();
+    check_at(scene(), kd, ks, light, s, tol)
+}
+
+fn check_at((mesh, bvh, g): (Mesh, Bvh, GBuffer), kd: Vec<[f32; 3]>, ks: Vec<[f32; 3]>, light: CubeMap, s: McSettings, tol: f64) -> anyhow::Result<()> {
     let trace = TraceScene { mesh: &mesh, bvh: &bvh, materials: &mesh };
     let op = McShading::prepare(&pixels(&g), &kd, &ks, &light, &trace, &s);
     assert_eq!(op.surface_samples > 0, s.effects.interreflection(), "bounce samples must be exercised exactly when on");
@@ -132,6 +140,33 @@ fn gradients_match_finite_differences_on_random_inputs() -> anyhow::Result<()> {
     let (kd, ks) = materials(n, |i| [0.1 + 0.8 * ((i * 7) % 10) as f32 / 10.0, 0.4, 0.6], |i| 0.15 + 0.8 * ((i * 3) % 10) as f32 / 10.0, |i| 0.1 + 0.8 * ((i * 5) % 10) as f32 / 10.0);
     check(kd.clone(), ks.clone(), light.clone(), settings(true, 0), 1e-2)?;
     check(kd, ks, light, settings(true, 1), 1e-2)
+}
+
+#[test]
+fn gradients_hold_over_many_pixels() -> anyhow::Result<()> {
+    // More pixels than one partial sum of the backward holds (it sums the light's gradient in
+    // fixed chunks of pixels): finite differences at elements drawn over the whole view, and,
+    // since the output is linear in the light (bounce radiance is a constant), the exact identity
+    // Σ w·out(light) − Σ w·out(0) = ⟨∂/∂light, light⟩.
+    let (mesh, bvh, g) = scene_at(100);
+    let n = g.surfels.len();
+    let covered = g.surfels.iter().filter(|s| s.is_some()).count();
+    assert!(n > 2 * 4096 && covered > n / 3, "{n} pixels, {covered} covered: too few to span several chunks");
+    let mut rng = Sampler::from_seed(13);
+    let light = random_light(4, &mut rng);
+    let (kd, ks) = materials(n, |i| [0.1 + 0.8 * ((i * 7) % 10) as f32 / 10.0, 0.4, 0.6], |i| 0.15 + 0.8 * ((i * 3) % 10) as f32 / 10.0, |i| 0.1 + 0.8 * ((i * 5) % 10) as f32 / 10.0);
+    let s = settings(true, 1);
+    let trace = TraceScene { mesh: &mesh, bvh: &bvh, materials: &mesh };
+    let op = McShading::prepare(&pixels(&g), &kd, &ks, &light, &trace, &s);
+    let weights = Tensor::rand(0.5f64, 1.5, (n, 6), &Device::Cpu)?;
+    let l = Var::from_tensor(&light_tensor(&light))?;
+    let loss = |light: &Tensor| -> anyhow::Result<Tensor> { Ok((shade_mc(&op, &to_tensor(&kd), &to_tensor(&ks), light)? * &weights)?.sum_all()?) };
+    let at_light = loss(l.as_tensor())?;
+    let grad = at_light.backward()?.get(l.as_tensor()).expect("light gradient").clone();
+    let predicted = at_light.to_scalar::<f64>()? - loss(&l.as_tensor().zeros_like()?)?.to_scalar::<f64>()?;
+    let inner = (grad * l.as_tensor())?.sum_all()?.to_scalar::<f64>()?;
+    assert!((predicted - inner).abs() <= 1e-9 * predicted.abs(), "{predicted} against ⟨gradient, light⟩ = {inner}");
+    check_at((mesh, bvh, g), kd, ks, light, s, 1e-2)
 }
 
 #[test]

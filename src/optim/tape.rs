@@ -337,6 +337,37 @@ where
     });
 }
 
+/// Parallel map with a scatter-add on the side, for items whose contributions are too costly to
+/// recompute per band as [`scatter_add_banded`] does: `f(i, sum)` returns item `i`'s own result
+/// and adds its contributions into `sum` (length `sum_len`). The items are cut into fixed chunks of
+/// `items_per_chunk`, each summing into a zeroed copy of `sum`, and the copies are added in chunk
+/// order. The chunking does not depend on the thread count, so neither does the rounding: the
+/// result is bit-identical on any number of threads. Memory: one `sum_len` copy per chunk.
+pub fn map_scatter_chunked<R, F>(n_items: usize, items_per_chunk: usize, sum_len: usize, f: F) -> (Vec<R>, Vec<f64>)
+where
+    R: Send,
+    F: Fn(usize, &mut [f64]) -> R + Sync,
+{
+    let per_chunk = items_per_chunk.max(1);
+    let partial: Vec<(Vec<R>, Vec<f64>)> = (0..n_items.div_ceil(per_chunk))
+        .into_par_iter()
+        .map(|c| {
+            let mut sum = vec![0.0; sum_len];
+            let results = (c * per_chunk..((c + 1) * per_chunk).min(n_items)).map(|i| f(i, &mut sum)).collect();
+            (results, sum)
+        })
+        .collect();
+    let mut results = Vec::with_capacity(n_items);
+    let mut sum = vec![0.0; sum_len];
+    for (r, s) in partial {
+        results.extend(r);
+        for (o, v) in sum.iter_mut().zip(&s) {
+            *o += v;
+        }
+    }
+    (results, sum)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -454,6 +485,39 @@ mod tests {
             sink.add((targets[i] + 1) % 97, 1.0);
         });
         assert_eq!(serial, par);
+    }
+
+    #[test]
+    fn chunked_map_scatter_matches_serial_and_any_thread_count() {
+        // Values whose sums round differently in different orders (1/3, 1e8), so a chunking that
+        // followed the thread count would show.
+        let n = 10_007;
+        let target = |i: usize| (i * 7919) % 97;
+        let value = |i: usize| if i % 5 == 0 { 1e8 } else { (i as f64) / 3.0 };
+        let mut serial = vec![0.0f64; 97];
+        for i in 0..n {
+            serial[target(i)] += value(i);
+        }
+        let run = |threads: usize| {
+            let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().expect("thread pool");
+            pool.install(|| {
+                map_scatter_chunked(n, 1000, 97, |i, sum| {
+                    sum[target(i)] += value(i);
+                    2 * i
+                })
+            })
+        };
+        let (results, sum) = run(1);
+        assert_eq!(results, (0..n).map(|i| 2 * i).collect::<Vec<_>>(), "results in item order");
+        for (a, b) in sum.iter().zip(&serial) {
+            assert!((a - b).abs() <= 1e-12 * b.abs(), "{a} against the serial {b}");
+        }
+        for threads in [2, 3, 8] {
+            assert_eq!(run(threads), (results.clone(), sum.clone()), "{threads} threads");
+        }
+        let (empty, zeros) = map_scatter_chunked(0, 1000, 4, |_, _| 0u8);
+        assert!(empty.is_empty());
+        assert_eq!(zeros, vec![0.0; 4]);
     }
 
     #[test]

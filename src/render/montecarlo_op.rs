@@ -40,7 +40,7 @@ use crate::material::brdf::clamp_cos;
 use crate::material::brdf_grad::{clamped_cos_grad, f0, lobe_and_roughness_grad, lobe_grad, schlick_weight};
 use crate::math::Frame;
 use crate::material::SurfaceParams;
-use crate::optim::tape::{apply, scatter_add_banded, Kernel, Real};
+use crate::optim::tape::{apply, map_scatter_chunked, Kernel, Real};
 use crate::render::gbuffer::Surfel;
 use crate::render::montecarlo::{draw_samples, local_outgoing, Incident, McSettings, TraceScene};
 use crate::render::ray_count::{self, RayCount};
@@ -49,6 +49,11 @@ use crate::rng::Sampler;
 /// Pixels per parallel work item of [`McShading::prepare`]: enough to amortise one sample list's
 /// allocation, few enough that two threads stay balanced on a 20k-pixel view.
 const PREPARE_CHUNK: usize = 256;
+
+/// Pixels per partial sum of the light's adjoint. Fixed, so that the sum's order (its rounding)
+/// is the same on any thread count; at 4096, a 256² view's 33k covered pixels make 9 partial
+/// sums, enough to keep two threads busy, each a copy of the light's gradient (590 KB at 6×64²).
+const GRAD_CHUNK_PIXELS: usize = 4096;
 
 /// What `prepare` draws for one chunk of pixels: per pixel its local outgoing direction and its
 /// range in the chunk's sample list, the list, and the rays traced.
@@ -327,16 +332,19 @@ impl Kernel for McShading {
             let g: [f64; 6] = std::array::from_fn(|c| g_out[6 * p + c].to_f64());
             Some((px, rgb(kd, p), ks[3 * p + 1].to_f64(), ks[3 * p + 2].to_f64(), g))
         };
-        if self.specular && (grads[0].is_some() || grads[1].is_some()) {
-            // Material gradients: one pass over each pixel's samples.
-            let per_pixel: Vec<([f64; 3], f64, f64)> = (0..self.len())
-                .into_par_iter()
-                .map(|p| {
-                    let Some((px, k, rough, metal, g)) = pixel(p) else { return ([0.0; 3], 0.0, 0.0) };
-                    let f0 = f0(k, metal);
-                    let (mut gkd, mut gr, mut gm) = ([0.0f64; 3], 0.0, 0.0);
-                    for s in self.pixel_samples(p) {
-                        let e = eval_sample(&px, s, rough, true);
+        // Material and light gradients in one sweep over each pixel's samples: each sample's
+        // lobe is evaluated once for both. The light's adjoint sums in fixed chunks of pixels
+        // (`GRAD_CHUNK_PIXELS`), so its rounding does not depend on the thread count.
+        let want_material = self.specular && (grads[0].is_some() || grads[1].is_some());
+        let light_len = grads[2].as_ref().map_or(0, |g| g.len());
+        if want_material || light_len > 0 {
+            let (per_pixel, light_sum) = map_scatter_chunked(self.len(), GRAD_CHUNK_PIXELS, light_len, |p, light_sum| {
+                let Some((px, k, rough, metal, g)) = pixel(p) else { return ([0.0; 3], 0.0, 0.0) };
+                let f0 = f0(k, metal);
+                let (mut gkd, mut gr, mut gm) = ([0.0f64; 3], 0.0, 0.0);
+                for s in self.pixel_samples(p) {
+                    let e = eval_sample(&px, s, rough, self.specular);
+                    if want_material {
                         let l = s.radiance(light);
                         for c in 0..3 {
                             let gs = g[3 + c] * l[c];
@@ -346,38 +354,33 @@ impl Kernel for McShading {
                             gr += gs * fresnel * e.dlobe;
                         }
                     }
-                    (gkd, gr, gm)
-                })
-                .collect();
-            if let Some(gkd) = grads[0].as_deref_mut() {
-                gkd.par_chunks_mut(3).zip(per_pixel.par_iter()).for_each(|(o, (g, _, _))| {
-                    for c in 0..3 {
-                        o[c] += T::from_f64(g[c]);
-                    }
-                });
-            }
-            if let Some(gks) = grads[1].as_deref_mut() {
-                gks.par_chunks_mut(3).zip(per_pixel.par_iter()).for_each(|(o, (_, gr, gm))| {
-                    o[1] += T::from_f64(*gr);
-                    o[2] += T::from_f64(*gm);
-                });
-            }
-        }
-        if let Some(glight) = grads[2].as_deref_mut() {
-            let mut acc = vec![0.0f64; glight.len()];
-            scatter_add_banded(&mut acc, self.len(), |p, sink| {
-                let Some((px, k, rough, metal, g)) = pixel(p) else { return };
-                let f0 = f0(k, metal);
-                for s in self.pixel_samples(p) {
-                    let Source::Texel(texel) = s.source else { continue };
-                    let e = eval_sample(&px, s, rough, self.specular);
-                    for c in 0..3 {
-                        let spec = (f0[c] * (1.0 - e.schlick) + e.schlick) * e.lobe;
-                        sink.add(3 * texel as usize + c, g[c] * e.diffuse + g[3 + c] * spec);
+                    if let (Source::Texel(texel), true) = (s.source, light_len > 0) {
+                        for c in 0..3 {
+                            let spec = (f0[c] * (1.0 - e.schlick) + e.schlick) * e.lobe;
+                            light_sum[3 * texel as usize + c] += g[c] * e.diffuse + g[3 + c] * spec;
+                        }
                     }
                 }
+                (gkd, gr, gm)
             });
-            glight.par_iter_mut().zip(acc.par_iter()).for_each(|(a, b)| *a += T::from_f64(*b));
+            if want_material {
+                if let Some(gkd) = grads[0].as_deref_mut() {
+                    gkd.par_chunks_mut(3).zip(per_pixel.par_iter()).for_each(|(o, (g, _, _))| {
+                        for c in 0..3 {
+                            o[c] += T::from_f64(g[c]);
+                        }
+                    });
+                }
+                if let Some(gks) = grads[1].as_deref_mut() {
+                    gks.par_chunks_mut(3).zip(per_pixel.par_iter()).for_each(|(o, (_, gr, gm))| {
+                        o[1] += T::from_f64(*gr);
+                        o[2] += T::from_f64(*gm);
+                    });
+                }
+            }
+            if let Some(glight) = grads[2].as_deref_mut() {
+                glight.par_iter_mut().zip(light_sum.par_iter()).for_each(|(a, b)| *a += T::from_f64(*b));
+            }
         }
         if let Some(gn) = grads.get_mut(3).and_then(|g| g.as_deref_mut()) {
             // Normal gradient: each sample's BRDF·cos term through n (directions fixed).
