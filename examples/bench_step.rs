@@ -1,6 +1,6 @@
 //! Time of one gradient step (render + backward + Adam; one 256² view; kd/ks textures and the
 //! light as parameters) for split-sum and for Monte Carlo at 4 and 16 spp, direct light and with
-//! 3 interreflection bounces, and beside it, measured in the same run, the same step in Mitsuba 3
+//! 3 interreflection bounces (and 4 spp with the cross-bilateral denoiser, `--denoise`), and beside it, measured in the same run, the same step in Mitsuba 3
 //! (`llvm_ad_rgb`, `prb` at max_depth 2 and 5) on the same mesh, textures, light and resolution
 //! (tools/mitsuba/gradient_step.py; skipped with a note when Mitsuba or its LLVM is missing).
 //!
@@ -80,18 +80,20 @@ fn main() -> Result<()> {
     // training probe as the light.
     let textures = MaterialTextures::bake_from(&ground_truth_mesh(&prepared.spec)?, &prepared.atlas, args.texture_res)?;
     let light = CubeMap::from_latlong(&prepared.spec.load_train_probe()?.radiance_image(), args.light_res);
-    // (name, mode, spp, effects, Mitsuba max_depth of the same light transport)
+    // (name, mode, spp, effects, denoiser, Mitsuba max_depth of the same light transport; Mitsuba's
+    // step has no denoiser, so that row has no counterpart)
     let bounced = Effects::with_bounces(3);
-    let settings: Vec<(String, ShadingMode, u32, Effects, Option<u32>)> = vec![
-        ("split-sum".into(), ShadingMode::SplitSum, 0, Effects::DIRECT, None),
-        ("MC 4 spp, direct light".into(), ShadingMode::MonteCarlo, 4, Effects::DIRECT, Some(2)),
-        ("MC 16 spp, direct light".into(), ShadingMode::MonteCarlo, 16, Effects::DIRECT, Some(2)),
-        ("MC 4 spp, 3 bounces".into(), ShadingMode::MonteCarlo, 4, bounced, Some(5)),
-        ("MC 16 spp, 3 bounces".into(), ShadingMode::MonteCarlo, 16, bounced, Some(5)),
+    let settings: Vec<(String, ShadingMode, u32, Effects, bool, Option<u32>)> = vec![
+        ("split-sum".into(), ShadingMode::SplitSum, 0, Effects::DIRECT, false, None),
+        ("MC 4 spp, direct light".into(), ShadingMode::MonteCarlo, 4, Effects::DIRECT, false, Some(2)),
+        ("MC 16 spp, direct light".into(), ShadingMode::MonteCarlo, 16, Effects::DIRECT, false, Some(2)),
+        ("MC 4 spp, 3 bounces".into(), ShadingMode::MonteCarlo, 4, bounced, false, Some(5)),
+        ("MC 16 spp, 3 bounces".into(), ShadingMode::MonteCarlo, 16, bounced, false, Some(5)),
+        ("MC 4 spp, 3 bounces, denoised".into(), ShadingMode::MonteCarlo, 4, bounced, true, None),
     ];
     let mut rows = Vec::new();
-    for (name, mode, spp, effects, depth) in settings {
-        let config = FitConfig { mode, spp: spp.max(1), batch: 1, iterations: args.steps + 1, texture_res: args.texture_res, light_res: args.light_res, checkpoint_every: 0, ..FitConfig::default() };
+    for (name, mode, spp, effects, denoise, depth) in settings {
+        let config = FitConfig { mode, spp: spp.max(1), batch: 1, iterations: args.steps + 1, texture_res: args.texture_res, light_res: args.light_res, checkpoint_every: 0, denoise, ..FitConfig::default() };
         let mut ctx = shading_context(&prepared, &config);
         ctx.effects = effects;
         let mut fit = Fit::new(config.clone(), Parameters::from_values(&textures, &light)?, vec![view.clone()], ctx)?;
@@ -114,7 +116,7 @@ fn main() -> Result<()> {
             // Rays of the mean step (steps draw new samples, so counts vary a little).
             let n = times.len() as u64;
             let per_step = RayCount { primary: rays.primary / n, shadow: rays.shadow / n, bounce: rays.bounce / n };
-            rows.push(Row { name, mode, spp, bounces: effects.indirect_bounces, depth, secs: median(times), rays: per_step });
+            rows.push(Row { name, mode, spp, bounces: effects.indirect_bounces, denoise, depth, secs: median(times), rays: per_step });
         }
     }
     let mitsuba = if args.no_mitsuba { None } else { run_mitsuba(&prepared, &textures, &light, &args).map_err(|e| say(format!("Mitsuba: skipped ({e:#})"))).ok() };
@@ -128,7 +130,7 @@ fn main() -> Result<()> {
                     ShadingMode::MonteCarlo => "montecarlo",
                 };
                 let mut v = serde_json::json!({
-                    "mode": mode, "spp": r.spp, "bounces": r.bounces, "reconstruct_s": r.secs,
+                    "mode": mode, "spp": r.spp, "bounces": r.bounces, "denoise": r.denoise, "reconstruct_s": r.secs,
                     "primary_rays": r.rays.primary, "shadow_rays": r.rays.shadow, "bounce_rays": r.rays.bounce,
                     "secondary_mrays_per_s": r.rays.secondary_mrays_per_s(r.secs),
                 });
@@ -166,6 +168,7 @@ struct Row {
     mode: ShadingMode,
     spp: u32,
     bounces: u32,
+    denoise: bool,
     /// Mitsuba's max_depth for the same light transport (None: not compared).
     depth: Option<u32>,
     secs: f64,

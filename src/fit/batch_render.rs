@@ -167,18 +167,17 @@ fn shade_batch_mc(views: &[&TrainingView], offsets: &[usize], kd: &Tensor, ks: &
         Some(n) => shade_mc_with_normal(&op, kd, ks, params.light.as_tensor(), n)?,
         None => shade_mc(&op, kd, ks, params.light.as_tensor())?,
     };
-    let (mut diffuse, mut specular) = (out.narrow(D::Minus1, 0, 3)?, out.narrow(D::Minus1, 3, 3)?);
-    if ctx.denoise {
-        let (mut d, mut s) = (Vec::new(), Vec::new());
+    // The denoiser filters both buffers (six channels) in one pass per view.
+    let out = if ctx.denoise {
+        let mut filtered = Vec::with_capacity(views.len());
         for (k, v) in views.iter().enumerate() {
-            let (start, len) = (offsets[k], v.len());
             let map = PixelMap { pixels: v.pixels.clone().into(), width: v.camera.width, height: v.camera.height };
             let filter = CrossBilateral::new(Arc::new(v.denoise_guides()?), BilateralParams::default());
-            d.push(map.gather(&filter.apply(&map.scatter(&diffuse.narrow(0, start, len)?)?)?)?);
-            s.push(map.gather(&filter.apply(&map.scatter(&specular.narrow(0, start, len)?)?)?)?);
+            filtered.push(map.gather(&filter.apply(&map.scatter(&out.narrow(0, offsets[k], v.len())?)?)?)?);
         }
-        diffuse = Tensor::cat(&d, 0)?;
-        specular = Tensor::cat(&s, 0)?;
-    }
-    Ok((diffuse, specular))
+        Tensor::cat(&filtered, 0)?
+    } else {
+        out
+    };
+    Ok((out.narrow(D::Minus1, 0, 3)?, out.narrow(D::Minus1, 3, 3)?))
 }

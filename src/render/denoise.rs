@@ -112,15 +112,22 @@ impl DenoiseGuides {
 
 /// The filter for one set of guides. The weights depend on the guides only, so they are computed
 /// once here, already divided by W(p), and shared by every forward and backward: 4·(2r+1)² bytes
-/// per pixel (169 taps: 44 MB at 256², 177 MB at 512²).
+/// per covered pixel (169 taps: 22 MB for a 256² view half covered). A pixel without a surface
+/// has no row: it passes through, and no covered pixel reads it (their weight is 0).
 #[derive(Clone)]
 pub struct CrossBilateral {
     width: usize,
     height: usize,
     radius: usize,
-    /// ŵ(p, p + d) = w(p, p + d) / W(p), row-major per pixel over the (2r+1)² offsets d; 0 outside.
+    /// Per pixel: its row in `weights`, or [`NO_ROW`] for a pixel without a surface.
+    rows: Arc<Vec<u32>>,
+    /// ŵ(p, p + d) = w(p, p + d) / W(p), one row per covered pixel p over the (2r+1)² offsets d;
+    /// 0 outside the image and at uncovered taps.
     weights: Arc<Vec<f32>>,
 }
+
+/// The row index of a pixel without a surface.
+const NO_ROW: u32 = u32::MAX;
 
 /// Per-offset constants of the window.
 struct WindowTables {
@@ -186,8 +193,13 @@ impl CrossBilateral {
         let (w, h, r) = (g.width, g.height, params.radius);
         let tables = WindowTables::new(&params);
         let taps = tables.side * tables.side;
-        let mut weights = vec![0.0f32; w * h * taps];
-        weights.par_chunks_mut(taps).enumerate().for_each(|(p, row)| {
+        let covered: Vec<usize> = (0..w * h).filter(|&p| g.covered[p]).collect();
+        let mut rows = vec![NO_ROW; w * h];
+        for (row, &p) in covered.iter().enumerate() {
+            rows[p] = row as u32;
+        }
+        let mut weights = vec![0.0f32; covered.len() * taps];
+        weights.par_chunks_mut(taps).zip(covered.par_iter()).for_each(|(row, &p)| {
             let mut sum = 0.0f64;
             for_each_in_window(w, h, r, p, |q, off| {
                 let wt = raw_weight(g, &params, &tables, p, q, off);
@@ -197,7 +209,7 @@ impl CrossBilateral {
             let inv = (1.0 / sum.max(FLT_EPS)) as f32;
             row.iter_mut().for_each(|v| *v *= inv);
         });
-        CrossBilateral { width: w, height: h, radius: r, weights: Arc::new(weights) }
+        CrossBilateral { width: w, height: h, radius: r, rows: Arc::new(rows), weights: Arc::new(weights) }
     }
 
     /// Denoises `image` [H, W, C] (any C), on the tape.
@@ -256,8 +268,16 @@ impl Kernel for CrossBilateral {
         let (x, c) = (x[0], self.check_dims(shapes[0])?);
         let taps = self.taps();
         out.par_chunks_mut(c).enumerate().for_each(|(p, o)| {
-            let row = &self.weights[p * taps..(p + 1) * taps];
+            let r = self.rows[p];
+            if r == NO_ROW {
+                o.copy_from_slice(&x[p * c..(p + 1) * c]);
+                return;
+            }
+            let row = &self.weights[r as usize * taps..(r as usize + 1) * taps];
             for_each_in_window(self.width, self.height, self.radius, p, |q, off| {
+                if row[off] == 0.0 {
+                    return;
+                }
                 let w = T::from_f64(row[off] as f64);
                 for k in 0..c {
                     o[k] += w * x[q * c + k];
@@ -272,10 +292,25 @@ impl Kernel for CrossBilateral {
         let c = self.check_dims(shapes[0])?;
         let taps = self.taps();
         gx.par_chunks_mut(c).enumerate().for_each(|(q, o)| {
-            // Transpose: q received ŵ(p, q) from every p in its window; the offset q − p is the
-            // mirror of the walk's offset p − q.
+            if self.rows[q] == NO_ROW {
+                // Passed through, and read by no covered pixel.
+                for k in 0..c {
+                    o[k] += g[q * c + k];
+                }
+                return;
+            }
+            // Transpose: q received ŵ(p, q) from every covered p in its window; the offset
+            // q − p is the mirror of the walk's offset p − q.
             for_each_in_window(self.width, self.height, self.radius, q, |p, off_pq| {
-                let w = T::from_f64(self.weights[p * taps + taps - 1 - off_pq] as f64);
+                let r = self.rows[p];
+                if r == NO_ROW {
+                    return;
+                }
+                let w = self.weights[r as usize * taps + taps - 1 - off_pq];
+                if w == 0.0 {
+                    return;
+                }
+                let w = T::from_f64(w as f64);
                 for k in 0..c {
                     o[k] += w * g[p * c + k];
                 }
