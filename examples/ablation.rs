@@ -2,7 +2,7 @@
 //! one scene with the same seed, budget and settings, plus the prior-quality sweep; writes
 //! ablation.md, ablation.json and prior_quality.png.
 //!
-//! cargo run --release --example ablation -- [--scene nerfactor_hotdog] [--iterations 1000]
+//! cargo run --release --example ablation -- [--scene nerfactor_hotdog] [--iterations N]
 //!     [--mode auto|split-sum|mc] [--sweep 0.5,1.5,2] [--labels DIR] [--idarb] [--out DIR]
 //!     [--plan sweep.jsonl [--append]]   (write the runs to a sweep manifest instead: docs/scale.md)
 
@@ -24,9 +24,9 @@ static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
 struct Args {
     #[arg(long, default_value = "nerfactor_hotdog")]
     scene: String,
-    /// The default run's budget, so the `none` row is the default command.
-    #[arg(long, default_value_t = 1000)]
-    iterations: usize,
+    /// Iterations (default: the default run's budget, so the `none` row is the default command).
+    #[arg(long)]
+    iterations: Option<usize>,
     /// auto (Monte Carlo when the scene needs shadows or interreflection), split-sum or mc.
     #[arg(long, default_value = "auto")]
     mode: String,
@@ -59,7 +59,8 @@ fn main() -> Result<()> {
         "split-sum" => Some(ShadingMode::SplitSum),
         other => anyhow::bail!("--mode {other}: use auto, split-sum or mc"),
     };
-    let fit = FitConfig { mode: mode.unwrap_or(ShadingMode::SplitSum), iterations: a.iterations, ..FitConfig::default() };
+    let defaults = FitConfig::default();
+    let fit = FitConfig { mode: mode.unwrap_or(ShadingMode::SplitSum), iterations: a.iterations.unwrap_or(defaults.iterations), ..defaults };
     let out = a.out.unwrap_or_else(|| default_out(&a.scene));
     if a.replot {
         let path = out.join("ablation.json");

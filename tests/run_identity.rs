@@ -102,8 +102,8 @@ fn each_setting_separates_runs_and_is_named() -> Result<()> {
 
     // Every optimiser setting and the seed.
     separates(&b, "training.fit.seed", |c| c.opts.fit.seed = 1)?;
-    separates(&b, "training.fit.spp", |c| c.opts.fit.spp = 4)?;
-    separates(&b, "training.fit.denoise", |c| c.opts.fit.denoise = true)?;
+    separates(&b, "training.fit.spp", |c| c.opts.fit.spp += 4)?;
+    separates(&b, "training.fit.denoise", |c| c.opts.fit.denoise = !c.opts.fit.denoise)?;
     separates(&b, "training.fit.batch", |c| c.opts.fit.batch = 3)?;
     separates(&b, "training.fit.texture_res", |c| c.opts.fit.texture_res = 256)?;
     separates(&b, "training.fit.light_res", |c| c.opts.fit.light_res = 32)?;

@@ -11,9 +11,10 @@ pub struct SettingOverrides {
     /// Monte Carlo samples per pixel and strategy (training).
     #[arg(long)]
     pub spp: Option<u32>,
-    /// Cross-bilateral denoiser on the Monte Carlo buffers.
-    #[arg(long)]
-    pub denoise: bool,
+    /// Cross-bilateral denoiser on the Monte Carlo buffers (on by default; `--denoise false` turns
+    /// it off).
+    #[arg(long, num_args = 0..=1, default_missing_value = "true")]
+    pub denoise: Option<bool>,
     #[arg(long)]
     pub iterations: Option<usize>,
     /// Views per iteration.
@@ -66,9 +67,10 @@ impl SettingOverrides {
     /// The fit settings: the defaults, the training mode (`None` = auto, which starts from
     /// split-sum and is decided by the job), then each option given.
     pub fn fit_config(&self, fixed_mode: Option<ShadingMode>) -> FitConfig {
-        let mut fit = FitConfig { mode: fixed_mode.unwrap_or(ShadingMode::SplitSum), denoise: self.denoise, refine_geometry: self.refine_geometry, normal_map: self.normal_map, ..FitConfig::default() };
+        let mut fit = FitConfig { mode: fixed_mode.unwrap_or(ShadingMode::SplitSum), refine_geometry: self.refine_geometry, normal_map: self.normal_map, ..FitConfig::default() };
         let set = |slot: &mut f64, v: Option<f64>| if let Some(v) = v { *slot = v };
         if let Some(v) = self.spp { fit.spp = v; }
+        if let Some(v) = self.denoise { fit.denoise = v; }
         if let Some(v) = self.iterations { fit.iterations = v; }
         if let Some(v) = self.batch { fit.batch = v; }
         if let Some(v) = self.texture_res { fit.texture_res = v; }
