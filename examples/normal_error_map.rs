@@ -8,6 +8,7 @@
 //! - whether the reconstruction lies in front of the ground truth's depth there, on it, or behind
 //!   it (a concavity the mesh fills, a surface in the right place, a part it lacks);
 //! - the size of the error itself.
+//!
 //! Each table gives the pixels' share, their mean error, and their shares of the summed and of the
 //! squared error. `--map DIR` writes one picture per test view: the error (blue 0° to orange 40°
 //! and more) beside the view, three times enlarged.

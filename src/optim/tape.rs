@@ -493,7 +493,7 @@ mod tests {
         // followed the thread count would show.
         let n = 10_007;
         let target = |i: usize| (i * 7919) % 97;
-        let value = |i: usize| if i % 5 == 0 { 1e8 } else { (i as f64) / 3.0 };
+        let value = |i: usize| if i.is_multiple_of(5) { 1e8 } else { (i as f64) / 3.0 };
         let mut serial = vec![0.0f64; 97];
         for i in 0..n {
             serial[target(i)] += value(i);
