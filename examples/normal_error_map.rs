@@ -22,9 +22,9 @@
 use anyhow::{bail, Result};
 use clap::Parser;
 use glam::Vec3;
+use reconstruct::color::luminance;
 use reconstruct::geometry::bvh::Bvh;
 use reconstruct::geometry::obj::load_obj_geometry;
-use reconstruct::geometry::Mesh;
 use reconstruct::image::io::write_png;
 use reconstruct::image::Image;
 use reconstruct::render::gbuffer::GBuffer;
@@ -95,15 +95,6 @@ impl Table {
     }
 }
 
-fn luminance(v: Vec3) -> f32 {
-    0.2126 * v.x + 0.7152 * v.y + 0.0722 * v.z
-}
-
-fn bounding_diagonal(mesh: &Mesh) -> f32 {
-    let (lo, hi) = mesh.positions.iter().fold((Vec3::splat(f32::MAX), Vec3::splat(f32::MIN)), |(lo, hi), p| (lo.min(*p), hi.max(*p)));
-    (hi - lo).length()
-}
-
 /// Per pixel, the chessboard distance in pixels to the nearest depth step of `depth`, up to `cap`.
 fn distance_to_depth_steps(depth: &Image, cap: usize) -> Vec<usize> {
     let (w, h) = (depth.width, depth.height);
@@ -164,8 +155,8 @@ fn main() -> Result<()> {
     }
     let bvh = Bvh::build(&mesh);
     let (diagonal, diagonal_of) = match ground_truth_mesh(&spec) {
-        Ok(gt) => (bounding_diagonal(&gt), "the ground truth's"),
-        Err(_) => (bounding_diagonal(&mesh), "the reconstruction's (no ground-truth mesh)"),
+        Ok(gt) => (gt.bounds().map_or(0.0, |(lo, hi)| (hi - lo).length()), "the ground truth's"),
+        Err(_) => (mesh.bounds().map_or(0.0, |(lo, hi)| (hi - lo).length()), "the reconstruction's (no ground-truth mesh)"),
     };
     let mut darkness = Table::new("By darkness (target luminance / albedo luminance)", &["below 0.25", "0.25–0.5", "0.5–1", "1–2", "2 and above"]);
     let mut outline = Table::new("By distance to an outline or depth step of the ground truth", &["0–2 px", "3–5 px", "6 px and more"]);

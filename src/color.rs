@@ -1,5 +1,14 @@
 //! The exact piecewise sRGB transfer curve (IEC 61966-2-1). All shading is linear;
-//! PNG inputs and outputs are sRGB-encoded except NeRFactor's `albedo.png`.
+//! PNG inputs and outputs are sRGB-encoded except NeRFactor's `albedo.png`. And the luminance of
+//! a linear colour.
+
+use glam::Vec3;
+
+/// Luminance of a linear Rec. 709 / sRGB colour (the Rec. 709 weights, which sRGB's primaries share).
+#[inline]
+pub fn luminance(c: Vec3) -> f32 {
+    c.dot(Vec3::new(0.2126, 0.7152, 0.0722))
+}
 
 /// sRGB-encoded value in [0, 1] to linear.
 pub fn srgb_to_linear(c: f32) -> f32 {

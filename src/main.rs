@@ -106,6 +106,10 @@ struct ReconstructArgs {
     /// Training views the prior labels (evenly spread; labelling with IDArb is expensive).
     #[arg(long, default_value_t = 100)]
     labelled_views: usize,
+    /// Train the materials on views N times smaller (box-filtered; N must divide the views' size).
+    /// The geometry pass and the evaluation keep their resolutions.
+    #[arg(long, default_value_t = 1)]
+    downscale: usize,
     /// IDArb weights folder for --prior idarb (else the IDARB_WEIGHTS variable).
     #[arg(long)]
     idarb_weights: Option<PathBuf>,
@@ -285,6 +289,7 @@ fn reconstruct(a: ReconstructArgs) -> Result<()> {
     opts.geometry_pass = a.settings.geometry_pass();
     opts.progress = !a.quiet;
     opts.labelled_views = a.labelled_views;
+    opts.downscale = a.downscale;
     opts.idarb_weights = a.idarb_weights;
     opts.auto_mode = fixed_mode.is_none();
     opts.eval_test_views = a.eval_test_views;

@@ -25,34 +25,30 @@ use reconstruct::scene::{crate_dir, SceneSpec};
 struct Case {
     opts: ReconstructOptions,
     prior: PriorSource,
-    downscale: usize,
 }
 
 fn identity(c: &Case) -> Result<RunIdentity> {
     let (spec, dataset) = load_scene(&c.opts.scene, c.opts.data.as_ref())?;
-    RunIdentity::new(&spec, &dataset, &c.opts, &c.prior, c.downscale)
+    RunIdentity::new(&spec, &dataset, &c.opts, &c.prior)
 }
 
 fn base() -> Case {
     let mut opts = ReconstructOptions::new("default", FitConfig::default(), 16, PathBuf::new());
     opts.auto_mode = true;
     opts.labelled_views = 100;
-    Case { opts, prior: PriorSource::None, downscale: 1 }
+    Case { opts, prior: PriorSource::None }
 }
 
-/// `change` applied to `from` must name `path` among the differences, and (when the CLI can ask for
-/// it: `downscale` is a trade-off setting) move the default run folder.
+/// `change` applied to `from` must name `path` among the differences and move the default run folder.
 fn separates(from: &Case, path: &str, change: impl FnOnce(&mut Case)) -> Result<()> {
     let (a, folder) = (identity(from)?, default_run_folder(&from.opts, &from.prior)?);
-    let mut to = Case { opts: from.opts.clone(), prior: from.prior.clone(), downscale: from.downscale };
+    let mut to = Case { opts: from.opts.clone(), prior: from.prior.clone() };
     change(&mut to);
     let b = identity(&to)?;
     let d = differences(&a.to_value()?, &b.to_value()?);
     assert!(d.iter().any(|d| d.path == path), "changing {path} must be named; differences: {d:?}");
     assert_ne!(a.digest(), b.digest(), "{path}");
-    if from.downscale == to.downscale {
-        assert_ne!(folder, default_run_folder(&to.opts, &to.prior)?, "changing {path} must change the default run folder");
-    }
+    assert_ne!(folder, default_run_folder(&to.opts, &to.prior)?, "changing {path} must change the default run folder");
     Ok(())
 }
 
@@ -67,7 +63,7 @@ fn each_setting_separates_runs_and_is_named() -> Result<()> {
     // Data: another folder with the same content, then the same folder with other content.
     common::copy_dir(&spec.data_dir, &tmp.join("data"))?;
     separates(&b, "data.folder", |c| c.opts.data = Some(tmp.join("data")))?;
-    let copy = Case { opts: ReconstructOptions { data: Some(tmp.join("data")), ..b.opts.clone() }, prior: PriorSource::None, downscale: 1 };
+    let copy = Case { opts: ReconstructOptions { data: Some(tmp.join("data")), ..b.opts.clone() }, prior: PriorSource::None };
     separates(&copy, "data.content", |_| {
         let f = tmp.join("data/transforms_test.json");
         let text = std::fs::read_to_string(&f).expect("transforms_test.json");
@@ -82,13 +78,13 @@ fn each_setting_separates_runs_and_is_named() -> Result<()> {
 
     // Geometry source and the geometry pass.
     separates(&b, "geometry.source", |c| c.opts.geometry = GeometrySource::Reconstruct)?;
-    let rec = Case { opts: ReconstructOptions { geometry: GeometrySource::Reconstruct, ..b.opts.clone() }, prior: PriorSource::None, downscale: 1 };
+    let rec = Case { opts: ReconstructOptions { geometry: GeometrySource::Reconstruct, ..b.opts.clone() }, prior: PriorSource::None };
     separates(&rec, "geometry.pass.iterations", |c| c.opts.geometry_pass = GeometryPassConfig { iterations: 5, ..GeometryPassConfig::default() })?;
     separates(&rec, "geometry.pass.seed", |c| c.opts.geometry_pass.seed = 1)?;
 
     // Prior: source, level, labelled views.
     separates(&b, "prior.source", |c| c.prior = PriorSource::Oracle)?;
-    let sim = Case { opts: b.opts.clone(), prior: PriorSource::IdarbSim(1.0), downscale: 1 };
+    let sim = Case { opts: b.opts.clone(), prior: PriorSource::IdarbSim(1.0) };
     separates(&sim, "prior.source", |c| c.prior = PriorSource::IdarbSim(0.5))?;
     separates(&sim, "prior.labelled_views", |c| c.opts.labelled_views = 10)?;
 
@@ -98,7 +94,7 @@ fn each_setting_separates_runs_and_is_named() -> Result<()> {
         c.opts.auto_mode = false;
         c.opts.fit.mode = ShadingMode::MonteCarlo;
     })?;
-    separates(&b, "training.downscale", |c| c.downscale = 2)?;
+    separates(&b, "training.downscale", |c| c.opts.downscale = 2)?;
 
     // Every optimiser setting and the seed.
     separates(&b, "training.fit.seed", |c| c.opts.fit.seed = 1)?;
@@ -126,9 +122,9 @@ fn each_setting_separates_runs_and_is_named() -> Result<()> {
     longer.fit.iterations *= 3;
     longer.fit.checkpoint_every = 7;
     assert_eq!(default_run_folder(&b.opts, &b.prior)?, default_run_folder(&longer, &b.prior)?);
-    assert_eq!(identity(&b)?, identity(&Case { opts: longer, prior: PriorSource::None, downscale: 1 })?);
+    assert_eq!(identity(&b)?, identity(&Case { opts: longer, prior: PriorSource::None })?);
     // …unless the prior anneals over the run's length.
-    let anneal = Case { opts: ReconstructOptions { fit: FitConfig { prior: reconstruct::fit::config::PriorWeights { anneal: 1.0, ..Default::default() }, ..FitConfig::default() }, ..b.opts.clone() }, prior: PriorSource::IdarbSim(1.0), downscale: 1 };
+    let anneal = Case { opts: ReconstructOptions { fit: FitConfig { prior: reconstruct::fit::config::PriorWeights { anneal: 1.0, ..Default::default() }, ..FitConfig::default() }, ..b.opts.clone() }, prior: PriorSource::IdarbSim(1.0) };
     separates(&anneal, "training.fit.iterations", |c| c.opts.fit.iterations = 10)?;
 
     // Trade-off points: forced effects and resolution get folders of their own.

@@ -53,7 +53,10 @@ impl TrainingView {
     pub fn new(view: &View, index: usize, mesh: &Mesh, bvh: &Bvh, downscale: usize) -> Result<TrainingView> {
         let rgba = view.load_rgba().with_context(|| format!("training view {}", view.name))?;
         rgba.require_finite(&format!("training view {} ({})", view.name, view.image_path.display()))?;
-        let s = downscale.max(1);
+        anyhow::ensure!(downscale >= 1, "training view {}: the training downscale must be 1 or more", view.name);
+        let s = downscale;
+        let (w, h) = (view.camera.width, view.camera.height);
+        anyhow::ensure!(w % s == 0 && h % s == 0, "training view {}: its {w}×{h} pixels do not divide by the training downscale {s}", view.name);
         if s == 1 {
             return Self::from_image(&view.name, &view.camera, index, &rgba, mesh, bvh);
         }

@@ -115,7 +115,7 @@ pub fn run_folder(out: &Path, source: &PriorSource) -> PathBuf {
 pub fn run(opts: &AblationOptions) -> Result<AblationReport> {
     let base = &opts.base;
     std::fs::create_dir_all(&base.out).with_context(|| format!("cannot create {}", base.out.display()))?;
-    let prepared = prepare_run(base, 1)?;
+    let prepared = prepare_run(base)?;
     let ctx = prior_context(base.fit.seed, base.idarb_weights.clone());
     let mut rows = Vec::new();
     for source in &all_sources(opts) {

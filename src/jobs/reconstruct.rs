@@ -69,6 +69,11 @@ pub struct ReconstructOptions {
     pub eval_test_views: Option<usize>,
     /// Choose `fit.mode` from the scene's effects ([`auto_training_mode`]) instead of using it.
     pub auto_mode: bool,
+    /// Train the materials on views this many times smaller (box-filtered targets; 1 = the data's
+    /// resolution). The geometry pass and the evaluation are not affected: the pass has its own
+    /// cap (`jobs::geometry::GEOMETRY_MAX_SIDE`), and the evaluation renders at the data's
+    /// resolution, as the protocol asks.
+    pub downscale: usize,
 }
 
 /// The training shading mode the effects call for: Monte Carlo when they need visibility
@@ -101,6 +106,7 @@ impl ReconstructOptions {
             effects_override: None,
             eval_test_views: None,
             auto_mode: false,
+            downscale: 1,
         }
     }
 }
@@ -144,8 +150,8 @@ pub fn prepare(scene: &str, data: Option<&PathBuf>, geometry: GeometrySource, pa
 
 /// [`prepare`] for a run of `opts`: reconstructed geometry is kept in `opts.out` and reused from
 /// there by a rerun of the same identity (`jobs::geometry_cache`).
-pub fn prepare_run(opts: &ReconstructOptions, downscale: usize) -> Result<Prepared> {
-    prepare_in(Some(&opts.out), &opts.scene, opts.data.as_ref(), opts.geometry, &opts.geometry_pass, &opts.fit, downscale, opts.progress)
+pub fn prepare_run(opts: &ReconstructOptions) -> Result<Prepared> {
+    prepare_in(Some(&opts.out), &opts.scene, opts.data.as_ref(), opts.geometry, &opts.geometry_pass, &opts.fit, opts.downscale, opts.progress)
 }
 
 #[allow(clippy::too_many_arguments)]
@@ -275,6 +281,13 @@ fn reported_effects(scene: &EffectChoice, run_override: Option<Effects>) -> Effe
 /// are deterministic, are redone and each folder and file replaced whole (`atomic_write`);
 /// `report.json` is written last, so its presence means the run finished.
 pub fn run_prepared(prepared: &Prepared, views: Vec<TrainingView>, opts: &ReconstructOptions, prior: &PriorSource, description: &str) -> Result<ReconstructReport> {
+    anyhow::ensure!(
+        prepared.downscale == opts.downscale,
+        "run {}: the views were prepared at 1/{} of their resolution for a run at 1/{}",
+        opts.out.display(),
+        prepared.downscale,
+        opts.downscale
+    );
     let mut stages = prepared.stage_seconds.clone();
     std::fs::create_dir_all(&opts.out).with_context(|| format!("cannot create the run folder {}", opts.out.display()))?;
     let effects = opts.effects_override.unwrap_or(prepared.effects.effects);
@@ -290,7 +303,7 @@ pub fn run_prepared(prepared: &Prepared, views: Vec<TrainingView>, opts: &Recons
     if opts.progress {
         eprintln!("training mode: {training_mode}");
     }
-    let identity = RunIdentity::new(&prepared.spec, &prepared.dataset, opts, prior, prepared.downscale)?.with_decided(effects, config.mode);
+    let identity = RunIdentity::new(&prepared.spec, &prepared.dataset, opts, prior)?.with_decided(effects, config.mode);
     let mut ctx = shading_context(prepared, &config);
     ctx.effects = effects;
     let start = match &prepared.initial_textures {
@@ -421,7 +434,7 @@ pub fn prior_context(seed: u64, idarb_weights: Option<PathBuf>) -> PriorContext 
 
 /// Prepare the scene and run (the `reconstruct` command).
 pub fn run(opts: &ReconstructOptions, prior: &PriorSource) -> Result<ReconstructReport> {
-    let prepared = prepare_run(opts, 1)?;
+    let prepared = prepare_run(opts)?;
     if opts.progress {
         eprintln!("scene {}: {} training views; atlas: {}", prepared.spec.name, prepared.views.len(), atlas_description(&prepared.atlas));
         eprintln!("effects: {}", prepared.effects);

@@ -33,6 +33,6 @@ pub fn readable_name(scene: &str, opts: &ReconstructOptions, prior: &PriorSource
 /// take the data's identity; no image is read).
 pub fn default_run_folder(opts: &ReconstructOptions, prior: &PriorSource) -> Result<PathBuf> {
     let (spec, dataset) = load_scene(&opts.scene, opts.data.as_ref())?;
-    let identity = RunIdentity::new(&spec, &dataset, opts, prior, 1)?;
+    let identity = RunIdentity::new(&spec, &dataset, opts, prior)?;
     Ok(PathBuf::from(RUNS_DIR).join(format!("{}-{}", readable_name(&spec.name, opts, prior), identity.short_digest())))
 }

@@ -198,8 +198,8 @@ pub fn mode_tag(auto: bool, mode: ShadingMode) -> &'static str {
 }
 
 impl RunIdentity {
-    /// The identity of a run of `opts` with `prior` at training resolution / `downscale`.
-    pub fn new(spec: &SceneSpec, dataset: &Dataset, opts: &ReconstructOptions, prior: &PriorSource, downscale: usize) -> Result<RunIdentity> {
+    /// The identity of a run of `opts` with `prior`.
+    pub fn new(spec: &SceneSpec, dataset: &Dataset, opts: &ReconstructOptions, prior: &PriorSource) -> Result<RunIdentity> {
         let mut fit = opts.fit.resume_settings();
         fit.prior_source = prior.tag();
         Ok(RunIdentity {
@@ -210,7 +210,7 @@ impl RunIdentity {
                 source: prior.tag(),
                 labelled_views: (*prior != PriorSource::None).then(|| opts.labelled_views.min(dataset.train.len())),
             },
-            training: TrainingIdentity { mode: mode_tag(opts.auto_mode, opts.fit.mode).to_string(), effects: opts.effects_override, downscale, fit },
+            training: TrainingIdentity { mode: mode_tag(opts.auto_mode, opts.fit.mode).to_string(), effects: opts.effects_override, downscale: opts.downscale, fit },
             evaluation: EvaluationIdentity { spp: opts.eval_spp, test_views: opts.eval_test_views.map(|n| n.min(dataset.test.len())) },
             decided: None,
         })

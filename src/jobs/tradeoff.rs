@@ -91,7 +91,7 @@ pub fn run(base: &ReconstructOptions, points: &[TradeoffPoint]) -> Result<Vec<Tr
     let mut results = Vec::new();
     for (k, pt) in points.iter().enumerate() {
         if !prepared.iter().any(|(d, _)| *d == pt.downscale) {
-            prepared.push((pt.downscale, prepare_run(base, pt.downscale)?));
+            prepared.push((pt.downscale, prepare_run(&point_options(base, k, pt)?.0)?));
         }
         let prep = &prepared.iter().find(|(d, _)| *d == pt.downscale).expect("prepared above").1;
         let (o, source) = point_options(base, k, pt)?;
@@ -126,6 +126,7 @@ pub fn point_options(base: &ReconstructOptions, k: usize, pt: &TradeoffPoint) ->
     o.fit.prior_source = source.tag();
     o.effects_override = pt.effects;
     o.labelled_views = pt.labelled_views;
+    o.downscale = pt.downscale;
     Ok((o, source))
 }
 

@@ -8,6 +8,7 @@ use std::fmt;
 use glam::Vec3;
 use serde::{Deserialize, Serialize};
 
+use crate::color::luminance;
 use crate::geometry::bvh::{Bvh, Hit};
 use crate::geometry::Mesh;
 use crate::material::MaterialField;
@@ -128,7 +129,7 @@ fn share_of(mesh: &Mesh, materials: Option<&dyn MaterialField>, hits: &[Option<H
         let [i0, i1, i2] = mesh.triangles[h.triangle as usize].map(|i| i as usize);
         let uv = (1.0 - h.bary.x - h.bary.y) * mesh.uvs[i0] + h.bary.x * mesh.uvs[i1] + h.bary.y * mesh.uvs[i2];
         let p = m.at(h.triangle, uv);
-        (p.kd * (1.0 - p.metallic)).dot(Vec3::new(0.2126, 0.7152, 0.0722))
+        luminance(p.kd * (1.0 - p.metallic))
     };
     // fold from +0: an empty float sum is −0, which would print as "-0.0%".
     hits.iter().flatten().map(albedo).fold(0.0, |sum, a| sum + a) / hits.len().max(1) as f32

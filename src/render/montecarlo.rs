@@ -19,6 +19,7 @@
 use glam::Vec3;
 use rayon::prelude::*;
 
+use crate::color::luminance;
 use crate::geometry::bvh::Bvh;
 use crate::geometry::Mesh;
 use crate::light::sampler::{LightLookup, LightSampler};
@@ -70,10 +71,6 @@ impl McBuffers {
             .map(|((d, s), p)| p.map_or(Vec3::ZERO, |p| p.kd * (1.0 - p.metallic) * *d + *s))
             .collect()
     }
-}
-
-fn luminance(c: Vec3) -> f32 {
-    c.dot(Vec3::new(0.2126, 0.7152, 0.0722))
 }
 
 /// Probability of sampling the specular lobe: its Fresnel-weighted share, kept within [0.1, 0.9]

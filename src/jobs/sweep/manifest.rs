@@ -118,6 +118,7 @@ impl RunSpec {
         o.labelled_views = self.labelled_views.unwrap_or(usize::MAX);
         o.effects_override = self.effects;
         o.idarb_weights = self.idarb_weights.clone();
+        o.downscale = self.downscale;
         o
     }
 
