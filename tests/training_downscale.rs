@@ -1,10 +1,10 @@
 //! `--downscale N`: the material pass trains on views N times smaller, the evaluation keeps the
-//! data's resolution, the run's identity records the divisor, and a divisor that does not divide
-//! the views is refused by view name.
+//! data's resolution, the labels are reduced with the views, the run's identity records the
+//! divisor, and a divisor that does not divide the views is refused by view name.
 
 use reconstruct::fit::config::FitConfig;
 use reconstruct::fit::geometry_pass::GeometryPassConfig;
-use reconstruct::jobs::reconstruct::{prepare, run, GeometrySource, ReconstructOptions};
+use reconstruct::jobs::reconstruct::{prepare, prior_context, run, views_with_prior, GeometrySource, ReconstructOptions};
 use reconstruct::prior::source::PriorSource;
 use reconstruct::render::view::ShadingMode;
 
@@ -23,6 +23,9 @@ fn training_views_are_reduced_and_the_evaluation_is_not() -> anyhow::Result<()> 
     let covered = |p: &reconstruct::jobs::reconstruct::Prepared| p.views.iter().map(|v| v.pixels.len()).sum::<usize>() as f64;
     let ratio = covered(&half) / covered(&full);
     assert!((0.22..0.28).contains(&ratio), "covered pixels at 1/2: {ratio:.3} of the full resolution's");
+    // Labels come at the data's resolution and are reduced with the views.
+    let (labelled, description) = views_with_prior(&half, &PriorSource::Oracle, &prior_context(0, None), usize::MAX)?;
+    assert!(labelled.iter().all(|v| v.labels.is_some()), "{description}");
 
     let tmp = std::env::temp_dir().join(format!("reconstruct-downscale-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&tmp);

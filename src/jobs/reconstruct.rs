@@ -415,6 +415,12 @@ pub fn views_with_prior(prepared: &Prepared, source: &PriorSource, ctx: &PriorCo
     for (&i, l) in which.iter().zip(labels) {
         if let Some(l) = l {
             let v = &mut views[i];
+            // Labels come at the data's resolution; a run at a reduced one takes them reduced alike.
+            let l = if prepared.downscale > 1 && l.mask.width == v.camera.width * prepared.downscale {
+                l.downsampled(prepared.downscale).with_context(|| format!("labels of view {}", v.name))?
+            } else {
+                l
+            };
             v.labels = Some(PixelLabels::gather(&l, &v.pixels, v.camera.width, v.camera.height, &v.name)?);
             count += 1;
         }

@@ -19,3 +19,71 @@ pub struct ViewLabels {
     /// back. 1 channel.
     pub mask: Image,
 }
+
+impl ViewLabels {
+    /// The labels `factor`× smaller, for training at a reduced resolution: each map is averaged
+    /// over its `factor`² block weighted by the mask (a pixel outside the labeller's mask says
+    /// nothing, so it must not pull its block's value), and the mask is the block's mean. A block
+    /// with no masked pixel keeps zeros. Normals are averaged encoded, which averages the vectors;
+    /// their users renormalise.
+    pub fn downsampled(&self, factor: usize) -> anyhow::Result<ViewLabels> {
+        let (w, h) = (self.mask.width, self.mask.height);
+        anyhow::ensure!(factor >= 1 && w % factor == 0 && h % factor == 0, "labels of {w}×{h} pixels do not divide by {factor}");
+        if factor == 1 {
+            return Ok(self.clone());
+        }
+        let mask = self.mask.downsample_box(factor);
+        let reduce = |img: &Image| -> anyhow::Result<Image> {
+            anyhow::ensure!(img.width == w && img.height == h, "a {}×{} label map beside a {w}×{h} mask", img.width, img.height);
+            let mut weighted = img.clone();
+            for (i, px) in weighted.data.chunks_exact_mut(img.channels).enumerate() {
+                px.iter_mut().for_each(|v| *v *= self.mask.data[i]);
+            }
+            let mut out = weighted.downsample_box(factor);
+            for (i, px) in out.data.chunks_exact_mut(img.channels).enumerate() {
+                let m = mask.data[i];
+                px.iter_mut().for_each(|v| *v = if m > 0.0 { *v / m } else { 0.0 });
+            }
+            Ok(out)
+        };
+        Ok(ViewLabels {
+            albedo: reduce(&self.albedo)?,
+            normal: reduce(&self.normal)?,
+            metallic: reduce(&self.metallic)?,
+            roughness: reduce(&self.roughness)?,
+            mask,
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn map(w: usize, h: usize, c: usize, f: impl Fn(usize, usize) -> f32) -> Image {
+        let mut img = Image::new(w, h, c);
+        for y in 0..h {
+            for x in 0..w {
+                img.data[(y * w + x) * c..(y * w + x + 1) * c].fill(f(x, y));
+            }
+        }
+        img
+    }
+
+    #[test]
+    fn downsampling_weighs_by_the_mask() {
+        // Left column masked with value 0.8, right column unmasked with value 0.1 (ignored).
+        let value = |x: usize, _| if x % 2 == 0 { 0.8 } else { 0.1 };
+        let mask = map(4, 2, 1, |x, _| if x % 2 == 0 { 1.0 } else { 0.0 });
+        let labels = ViewLabels { albedo: map(4, 2, 3, value), normal: map(4, 2, 3, value), metallic: map(4, 2, 1, value), roughness: map(4, 2, 1, value), mask };
+        let small = labels.downsampled(2).expect("4×2 divides by 2");
+        assert_eq!((small.mask.width, small.mask.height), (2, 1));
+        assert_eq!(small.mask.data, vec![0.5, 0.5]);
+        for img in [&small.albedo, &small.normal, &small.metallic, &small.roughness] {
+            assert!(img.data.iter().all(|&v| (v - 0.8).abs() < 1e-6), "{:?}", img.data);
+        }
+        assert!(labels.downsampled(3).is_err());
+        let empty = ViewLabels { mask: Image::new(4, 2, 1), ..labels };
+        assert!(empty.downsampled(2).expect("divides").albedo.data.iter().all(|&v| v == 0.0));
+    }
+}
