@@ -74,7 +74,7 @@ fn nan_in_a_label_map_is_refused_naming_the_view_map_and_pixel() {
         roughness: Image::filled(SIZE, SIZE, &[0.5]),
         mask: Image::filled(SIZE, SIZE, &[1.0]),
     };
-    assert!(PixelLabels::gather(&good(), &view.pixels, SIZE, SIZE, "train_007").is_ok());
+    assert!(PixelLabels::gather(&good(), &view.pixels, SIZE, SIZE, cam.c2w, "train_007").is_ok());
     for (map, bad) in [("albedo", f32::NAN), ("roughness", f32::INFINITY), ("normal", f32::NAN)] {
         let mut labels = good();
         let img = match map {
@@ -83,7 +83,7 @@ fn nan_in_a_label_map_is_refused_naming_the_view_map_and_pixel() {
             _ => &mut labels.normal,
         };
         img.pixel_mut(30, 2)[0] = bad;
-        let msg = format!("{:#}", PixelLabels::gather(&labels, &view.pixels, SIZE, SIZE, "train_007").err().expect("refused"));
+        let msg = format!("{:#}", PixelLabels::gather(&labels, &view.pixels, SIZE, SIZE, cam.c2w, "train_007").err().expect("refused"));
         assert!(msg.contains("train_007") && msg.contains(map) && msg.contains("pixel (30, 2)"), "{msg}");
     }
 }

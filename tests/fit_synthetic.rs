@@ -500,3 +500,60 @@ fn a_normal_map_run_resumes_exactly_and_split_sum_refuses_it() -> Result<()> {
     assert!(err.contains("--normal-map") && err.contains("Monte Carlo"), "{err}");
     Ok(())
 }
+
+#[test]
+fn a_normal_prior_pulls_a_noisy_normal_map_to_its_labels() -> Result<()> {
+    use candle_core::{DType, Device, Tensor};
+    use reconstruct::fit::batch_render::render_batch;
+    use reconstruct::fit::config::PriorWeights;
+    use reconstruct::fit::labels::PixelLabels;
+    use reconstruct::fit::objective::objective;
+    use reconstruct::material::normal_map::{NORMAL_MAX, NORMAL_MIN};
+    use reconstruct::material::MaterialField;
+    use reconstruct::optim::adam::{Adam, GroupConfig, LrSchedule};
+    let s = normal_mapped_scene()?;
+    let dev = &Device::Cpu;
+    // 2 spp: alone, the map settles where the noise puts it; labels of the true shading normals
+    // (in world space, as `PixelLabels::gather` turns them) must pull it to the truth.
+    let fit_map = |weight: f64| -> Result<(f64, f64)> {
+        let prior = PriorWeights { albedo: 0.0, roughness: 0.0, metallic: 0.0, normal: weight, ..PriorWeights::default() };
+        let cfg = FitConfig { mode: ShadingMode::MonteCarlo, spp: 2, normal_map: true, prior, ..config(0) };
+        let mut views = s.views.clone();
+        for v in &mut views {
+            let n = v.len();
+            let normals: Vec<f32> = v.surfels.iter().flat_map(|p| s.truth.shading_normal(p.triangle, p.bary3(), p.uv, p.normal).to_array()).collect();
+            let zeros = |c: usize| Tensor::zeros((n, 1, c), DType::F32, dev);
+            v.labels = Some(PixelLabels {
+                albedo_srgb: zeros(3)?,
+                roughness: zeros(1)?,
+                metallic: zeros(1)?,
+                mask: zeros(1)?,
+                normal_world: Tensor::from_vec(normals, (n, 1, 3), dev)?,
+                normal_mask: Tensor::ones((n, 1, 1), DType::F32, dev)?,
+            });
+        }
+        let start = MaterialTextures { normal: None, ..s.truth.clone() };
+        let fit = Fit::new(cfg.clone(), Parameters::from_values(&start, &s.light)?, views, context(&s, &cfg))?;
+        let map = fit.params.normal.as_ref().expect("the fit adds a flat map").map.clone();
+        let mut adam = Adam::new(LrSchedule { warmup_steps: 0, decay_steps: 1_000_000, staircase: false });
+        adam.add_group(GroupConfig::new("normal", cfg.lr_material).with_channel_clamp(&NORMAL_MIN, &NORMAL_MAX), vec![map])?;
+        let before = mean_normal_angle(&fit.views, &fit.params.textures()?, &s.truth);
+        for it in 0..150 {
+            let batch: Vec<&TrainingView> = fit.batch_for(it).into_iter().map(|i| &fit.views[i]).collect();
+            let render = render_batch(&batch, &fit.params, &fit.ctx, it as u64, None)?;
+            let (loss, _) = objective(&batch, &render, &fit.params, &cfg, it)?;
+            adam.step(&loss.backward()?)?;
+            fit.params.normal.as_ref().expect("map").normalize()?;
+        }
+        Ok((before, mean_normal_angle(&fit.views, &fit.params.textures()?, &s.truth)))
+    };
+    let (before, without) = fit_map(0.0)?;
+    let (_, with) = fit_map(1.0)?;
+    eprintln!("mean shading-normal error: {before:.2}° at the start, {without:.2}° without the prior, {with:.2}° with it");
+    assert!(with < 0.5 * without && with < 0.5 * before, "the normal prior did not pull the map: {before:.2}° → {without:.2}° without, {with:.2}° with");
+    // Without normals that move there is nothing for the term to act on: refused, not ignored.
+    let fixed = FitConfig { mode: ShadingMode::MonteCarlo, prior: PriorWeights { normal: 1.0, ..PriorWeights::default() }, ..config(0) };
+    let err = Fit::new(fixed.clone(), Parameters::initial(&fixed)?, s.views.clone(), context(&s, &fixed)).err().expect("refused").to_string();
+    assert!(err.contains("--prior-normal") && err.contains("--normal-map"), "{err}");
+    Ok(())
+}

@@ -53,6 +53,9 @@ pub struct BatchRender {
     pub uv: Arc<[[f32; 2]]>,
     /// Where each view's rows start (and the total at the end).
     pub offsets: Vec<usize>,
+    /// The shading normals [N, 3] on the tape, when they are parameters (the normal map, the
+    /// vertex refinement); `None` when they are the mesh's fixed ones.
+    pub normals: Option<Tensor>,
 }
 
 /// Row offsets of the views' pixels in the concatenation.
@@ -78,7 +81,8 @@ pub fn render_batch(views: &[&TrainingView], params: &Parameters, ctx: &ShadingC
         Some(map) => Some(normal_mapped(views, n, &uv, map, normals)?),
         None => None,
     };
-    let normals = mapped.as_ref().or(normals);
+    let normals = mapped.or_else(|| normals.cloned());
+    let normals = normals.as_ref();
     let (rgb, light_buffers) = match ctx.mode {
         ShadingMode::SplitSum => {
             if normals.is_some() {
@@ -98,7 +102,7 @@ pub fn render_batch(views: &[&TrainingView], params: &Parameters, ctx: &ShadingC
     };
     let rgb = rgb.reshape((n, 1, 3))?;
     let light_buffers = light_buffers.map(|(d, s): (Tensor, Tensor)| -> Result<(Tensor, Tensor)> { Ok((d.reshape((n, 1, 3))?, s.reshape((n, 1, 3))?)) }).transpose()?;
-    Ok(BatchRender { rgb, kd, ks, light_buffers, uv, offsets })
+    Ok(BatchRender { rgb, kd, ks, light_buffers, uv, offsets, normals: normals.cloned() })
 }
 
 /// The pixels' shading normals through the normal map, [N, 3] on the tape: the map looked up at

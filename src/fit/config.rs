@@ -17,11 +17,21 @@ pub struct PriorWeights {
     pub metallic: f64,
     /// The prior weight is multiplied by (1 − t)^anneal at run fraction t (0 = constant).
     pub anneal: f64,
+    /// The shading normal against the normal label (in world space, which the L2 norm does not
+    /// distinguish from camera space). Only a run whose normals move has a term to add: with the
+    /// normal map (`normal_map`) or the vertex refinement (`refine_geometry`). Off by default
+    /// (left out of the run identity while 0, so runs without it keep theirs).
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub normal: f64,
+}
+
+fn is_zero(v: &f64) -> bool {
+    *v == 0.0
 }
 
 impl Default for PriorWeights {
     fn default() -> Self {
-        PriorWeights { albedo: 1.0, roughness: 1.0, metallic: 1.0, anneal: 0.0 }
+        PriorWeights { albedo: 1.0, roughness: 1.0, metallic: 1.0, anneal: 0.0, normal: 0.0 }
     }
 }
 

@@ -77,6 +77,9 @@ impl Fit {
         if config.batch == 0 {
             bail!("batch size must be at least 1");
         }
+        if config.prior.normal > 0.0 && !config.normal_map && !config.refine_geometry {
+            bail!("the normal prior (--prior-normal) needs shading normals that move: add --normal-map or --refine-geometry");
+        }
         if config.normal_map {
             if config.mode != ShadingMode::MonteCarlo {
                 bail!("the normal map (--normal-map) needs Monte Carlo training (--mode mc): the split-sum operator has no normal input");

@@ -122,6 +122,10 @@ pub fn objective(views: &[&TrainingView], render: &BatchRender, params: &Paramet
             if p.metallic > 0.0 {
                 parts.push(prior_loss(&ks.narrow(D::Minus1, 2, 1)?, &labels.metallic, &labels.mask, p.metallic * schedule)?);
             }
+            if let (true, Some(n)) = (p.normal > 0.0, &render.normals) {
+                let n = n.narrow(0, start, len)?.reshape((len, 1, 3))?;
+                parts.push(prior_loss(&n, &labels.normal_world, &labels.normal_mask, p.normal * schedule)?);
+            }
             for t in parts {
                 let t = t.affine(1.0 / labelled.len() as f64, 0.0)?;
                 prior = Some(match prior {

@@ -47,6 +47,10 @@ pub struct SettingOverrides {
     /// Weight of the metallic component alone.
     #[arg(long)]
     pub prior_metallic: Option<f64>,
+    /// Weight of the normal prior (the shading normal against the normal label; off by default,
+    /// and only with --normal-map or --refine-geometry, whose normals move).
+    #[arg(long)]
+    pub prior_normal: Option<f64>,
     /// Iterations between checkpoints (0 = only at the end; bookkeeping: not part of the run identity).
     #[arg(long)]
     pub checkpoint_every: Option<usize>,
@@ -86,6 +90,7 @@ impl SettingOverrides {
         set(&mut fit.prior.albedo, self.prior_albedo);
         set(&mut fit.prior.roughness, self.prior_roughness);
         set(&mut fit.prior.metallic, self.prior_metallic);
+        set(&mut fit.prior.normal, self.prior_normal);
         fit
     }
 

@@ -421,7 +421,7 @@ pub fn views_with_prior(prepared: &Prepared, source: &PriorSource, ctx: &PriorCo
             } else {
                 l
             };
-            v.labels = Some(PixelLabels::gather(&l, &v.pixels, v.camera.width, v.camera.height, &v.name)?);
+            v.labels = Some(PixelLabels::gather(&l, &v.pixels, v.camera.width, v.camera.height, v.camera.c2w, &v.name)?);
             count += 1;
         }
     }

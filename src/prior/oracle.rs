@@ -19,9 +19,10 @@ use super::source::Prior;
 
 pub struct Oracle;
 
-/// World-space unit normals (RGBA, zero where invalid) → camera-space encoded labels.
-pub fn camera_normals(normals: &Image, view: &View) -> Image {
-    let w2c = view.camera.c2w.inverse();
+/// World-space unit normals (RGBA, zero where invalid) → camera-space encoded labels, for the
+/// camera `c2w` (`fit::labels::world_normal` is the inverse).
+pub fn camera_normals(normals: &Image, c2w: glam::Mat4) -> Image {
+    let w2c = c2w.inverse();
     let mut out = Image::new(normals.width, normals.height, 3);
     for i in 0..normals.pixel_count() {
         let n = normals.rgb(i);
@@ -39,7 +40,7 @@ pub fn view_labels(view: &View) -> Result<ViewLabels> {
     let albedo = view.load_albedo().with_context(ctx)?;
     let alpha = view.load_alpha().with_context(ctx)?;
     let mask = alpha.map_channels(1, |a| if a > 0.5 { 1.0 } else { 0.0 });
-    let normal = if view.has_normal() { camera_normals(&view.load_normal().with_context(ctx)?, view) } else { Image::new(albedo.width, albedo.height, 3) };
+    let normal = if view.has_normal() { camera_normals(&view.load_normal().with_context(ctx)?, view.camera.c2w) } else { Image::new(albedo.width, albedo.height, 3) };
     let roughness = view.load_roughness_if_present().with_context(ctx)?.unwrap_or_else(|| Image::filled(albedo.width, albedo.height, &[0.5]));
     let metallic = view.load_metallic_if_present().with_context(ctx)?.unwrap_or_else(|| Image::filled(albedo.width, albedo.height, &[0.0]));
     let albedo = crate::image::io::to_rgb(&albedo).linear_to_srgb();
