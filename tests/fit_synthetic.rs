@@ -452,32 +452,38 @@ fn mean_normal_angle(views: &[TrainingView], a: &MaterialTextures, b: &MaterialT
     sum / n as f64
 }
 
-#[test]
-fn a_normal_map_is_recovered_from_the_images() -> Result<()> {
+/// Fits only the normal map of `s` (materials and light held at the truth) for `iterations`
+/// steps of the fit's own render, loss and update; the mean shading-normal error before and after.
+fn fit_map_only(s: &Scene, cfg: &FitConfig, views: Vec<TrainingView>, iterations: usize) -> Result<(f64, f64)> {
     use reconstruct::fit::batch_render::render_batch;
     use reconstruct::fit::objective::objective;
     use reconstruct::material::normal_map::{NORMAL_MAX, NORMAL_MIN};
     use reconstruct::optim::adam::{Adam, GroupConfig, LrSchedule};
+    let start = MaterialTextures { normal: None, ..s.truth.clone() };
+    let fit = Fit::new(cfg.clone(), Parameters::from_values(&start, &s.light)?, views, context(s, cfg))?;
+    let map = fit.params.normal.as_ref().expect("the fit adds a flat map").map.clone();
+    let mut adam = Adam::new(LrSchedule { warmup_steps: 0, decay_steps: 1_000_000, staircase: false });
+    adam.add_group(GroupConfig::new("normal", cfg.lr_material).with_channel_clamp(&NORMAL_MIN, &NORMAL_MAX), vec![map])?;
+    let before = mean_normal_angle(&fit.views, &fit.params.textures()?, &s.truth);
+    for it in 0..iterations {
+        let batch: Vec<&TrainingView> = fit.batch_for(it).into_iter().map(|i| &fit.views[i]).collect();
+        let render = render_batch(&batch, &fit.params, &fit.ctx, it as u64, None)?;
+        let (loss, _) = objective(&batch, &render, &fit.params, cfg, it)?;
+        adam.step(&loss.backward()?)?;
+        fit.params.normal.as_ref().expect("map").normalize()?;
+    }
+    Ok((before, mean_normal_angle(&fit.views, &fit.params.textures()?, &s.truth)))
+}
+
+#[test]
+fn a_normal_map_is_recovered_from_the_images() -> Result<()> {
     let s = normal_mapped_scene()?;
     // 32 spp: the map is a free vector per texel, and the noise of a few samples leaves a floor.
     // Materials and light are the truth and only the map moves: under one light a free albedo
     // can absorb diffuse shading as well as a tilt can (why the fit's flatness term exists), so
     // this checks the map's gradient alone, through the fit's own render, loss and update.
     let cfg = FitConfig { mode: ShadingMode::MonteCarlo, spp: 32, normal_map: true, ..config(0) };
-    let start = MaterialTextures { normal: None, ..s.truth.clone() };
-    let fit = Fit::new(cfg.clone(), Parameters::from_values(&start, &s.light)?, s.views.clone(), context(&s, &cfg))?;
-    let map = fit.params.normal.as_ref().expect("the fit adds a flat map").map.clone();
-    let mut adam = Adam::new(LrSchedule { warmup_steps: 0, decay_steps: 1_000_000, staircase: false });
-    adam.add_group(GroupConfig::new("normal", cfg.lr_material).with_channel_clamp(&NORMAL_MIN, &NORMAL_MAX), vec![map])?;
-    let before = mean_normal_angle(&fit.views, &fit.params.textures()?, &s.truth);
-    for it in 0..300 {
-        let batch: Vec<&TrainingView> = fit.batch_for(it).into_iter().map(|i| &fit.views[i]).collect();
-        let render = render_batch(&batch, &fit.params, &fit.ctx, it as u64, None)?;
-        let (loss, _) = objective(&batch, &render, &fit.params, &cfg, it)?;
-        adam.step(&loss.backward()?)?;
-        fit.params.normal.as_ref().expect("map").normalize()?;
-    }
-    let after = mean_normal_angle(&fit.views, &fit.params.textures()?, &s.truth);
+    let (before, after) = fit_map_only(&s, &cfg, s.views.clone(), 300)?;
     eprintln!("mean shading-normal error on the training pixels: {before:.2}° → {after:.2}°");
     assert!(before > 8.0, "the truth's tilt is too small to test ({before:.2}°)");
     // Measured 16.17° → 6.51° at 32 spp (9.2° at 8, 7.8° at 16 spp: the L1 fit of a noisy
@@ -504,13 +510,9 @@ fn a_normal_map_run_resumes_exactly_and_split_sum_refuses_it() -> Result<()> {
 #[test]
 fn a_normal_prior_pulls_a_noisy_normal_map_to_its_labels() -> Result<()> {
     use candle_core::{DType, Device, Tensor};
-    use reconstruct::fit::batch_render::render_batch;
     use reconstruct::fit::config::PriorWeights;
     use reconstruct::fit::labels::PixelLabels;
-    use reconstruct::fit::objective::objective;
-    use reconstruct::material::normal_map::{NORMAL_MAX, NORMAL_MIN};
     use reconstruct::material::MaterialField;
-    use reconstruct::optim::adam::{Adam, GroupConfig, LrSchedule};
     let s = normal_mapped_scene()?;
     let dev = &Device::Cpu;
     // 2 spp: alone, the map settles where the noise puts it; labels of the true shading normals
@@ -532,20 +534,7 @@ fn a_normal_prior_pulls_a_noisy_normal_map_to_its_labels() -> Result<()> {
                 normal_mask: Tensor::ones((n, 1, 1), DType::F32, dev)?,
             });
         }
-        let start = MaterialTextures { normal: None, ..s.truth.clone() };
-        let fit = Fit::new(cfg.clone(), Parameters::from_values(&start, &s.light)?, views, context(&s, &cfg))?;
-        let map = fit.params.normal.as_ref().expect("the fit adds a flat map").map.clone();
-        let mut adam = Adam::new(LrSchedule { warmup_steps: 0, decay_steps: 1_000_000, staircase: false });
-        adam.add_group(GroupConfig::new("normal", cfg.lr_material).with_channel_clamp(&NORMAL_MIN, &NORMAL_MAX), vec![map])?;
-        let before = mean_normal_angle(&fit.views, &fit.params.textures()?, &s.truth);
-        for it in 0..150 {
-            let batch: Vec<&TrainingView> = fit.batch_for(it).into_iter().map(|i| &fit.views[i]).collect();
-            let render = render_batch(&batch, &fit.params, &fit.ctx, it as u64, None)?;
-            let (loss, _) = objective(&batch, &render, &fit.params, &cfg, it)?;
-            adam.step(&loss.backward()?)?;
-            fit.params.normal.as_ref().expect("map").normalize()?;
-        }
-        Ok((before, mean_normal_angle(&fit.views, &fit.params.textures()?, &s.truth)))
+        fit_map_only(&s, &cfg, views, 150)
     };
     let (before, without) = fit_map(0.0)?;
     let (_, with) = fit_map(1.0)?;
