@@ -48,7 +48,7 @@ impl PixelLabels {
     /// `labels` must have the view's size (`width`×`height`); `c2w` is the view's camera-to-world
     /// matrix, which turns the camera-space normal labels to world space.
     pub fn gather(labels: &ViewLabels, pixels: &[u32], width: usize, height: usize, c2w: Mat4, view: &str) -> Result<PixelLabels> {
-        for (what, img) in [("albedo", &labels.albedo), ("roughness", &labels.roughness), ("metallic", &labels.metallic), ("mask", &labels.mask)] {
+        for (what, img) in [("albedo", &labels.albedo), ("normal", &labels.normal), ("roughness", &labels.roughness), ("metallic", &labels.metallic), ("mask", &labels.mask)] {
             ensure!(
                 img.width == width && img.height == height,
                 "labels of view {view}: {what} is {}×{}, the view is {width}×{height}",
@@ -57,14 +57,7 @@ impl PixelLabels {
             );
             img.require_finite(&format!("labels of view {view}: {what} map"))?;
         }
-        labels.normal.require_finite(&format!("labels of view {view}: normal map"))?;
-        ensure!(
-            labels.normal.width == width && labels.normal.height == height && labels.normal.channels >= 3,
-            "labels of view {view}: normal is {}×{}×{}, the view is {width}×{height}×3",
-            labels.normal.width,
-            labels.normal.height,
-            labels.normal.channels
-        );
+        ensure!(labels.normal.channels >= 3, "labels of view {view}: normal has {} channels, need 3", labels.normal.channels);
         let (mut normal, mut normal_mask) = (Vec::with_capacity(3 * pixels.len()), Vec::with_capacity(pixels.len()));
         for &p in pixels {
             let (p, c) = (p as usize, labels.normal.channels);

@@ -140,6 +140,24 @@ impl Image {
         self
     }
 
+    /// `self` reduced `factor`× by a box filter weighted by `weight` (one channel, `self`'s size):
+    /// each block's weighted mean, 0 where the block weighs nothing. What
+    /// [`Image::downsample_straight_alpha`] does with the alpha in the image, for a weight held
+    /// apart (a label map and its mask). `factor` must divide both sides.
+    pub fn downsample_weighted(&self, weight: &Image, factor: usize) -> Image {
+        assert!(weight.channels == 1 && weight.width == self.width && weight.height == self.height);
+        let mut weighted = self.clone();
+        for (px, w) in weighted.data.chunks_exact_mut(self.channels).zip(&weight.data) {
+            px.iter_mut().for_each(|v| *v *= w);
+        }
+        let block_weight = weight.downsample_box(factor);
+        let mut out = weighted.downsample_box(factor);
+        for (px, &w) in out.data.chunks_exact_mut(self.channels).zip(&block_weight.data) {
+            px.iter_mut().for_each(|v| *v = if w > 0.0 { *v / w } else { 0.0 });
+        }
+        out
+    }
+
     /// Straight-alpha RGBA reduced `factor`× by the box filter done right for alpha: the
     /// premultiplied colour is averaged, then divided by the averaged alpha (averaging straight
     /// colour would let the background's arbitrary colour bleed into outline pixels).

@@ -32,26 +32,16 @@ impl ViewLabels {
         if factor == 1 {
             return Ok(self.clone());
         }
-        let mask = self.mask.downsample_box(factor);
         let reduce = |img: &Image| -> anyhow::Result<Image> {
             anyhow::ensure!(img.width == w && img.height == h, "a {}×{} label map beside a {w}×{h} mask", img.width, img.height);
-            let mut weighted = img.clone();
-            for (i, px) in weighted.data.chunks_exact_mut(img.channels).enumerate() {
-                px.iter_mut().for_each(|v| *v *= self.mask.data[i]);
-            }
-            let mut out = weighted.downsample_box(factor);
-            for (i, px) in out.data.chunks_exact_mut(img.channels).enumerate() {
-                let m = mask.data[i];
-                px.iter_mut().for_each(|v| *v = if m > 0.0 { *v / m } else { 0.0 });
-            }
-            Ok(out)
+            Ok(img.downsample_weighted(&self.mask, factor))
         };
         Ok(ViewLabels {
             albedo: reduce(&self.albedo)?,
             normal: reduce(&self.normal)?,
             metallic: reduce(&self.metallic)?,
             roughness: reduce(&self.roughness)?,
-            mask,
+            mask: self.mask.downsample_box(factor),
         })
     }
 }
