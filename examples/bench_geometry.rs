@@ -15,6 +15,8 @@ use clap::Parser;
 use reconstruct::fit::geometry_pass::GeometryPassConfig;
 use reconstruct::geometry::bvh::Bvh;
 use reconstruct::jobs::geometry::{obtain_geometry, score_geometry, scores_summary, GeometrySource};
+use reconstruct::jobs::reconstruct::prior_context;
+use reconstruct::prior::source::{make_prior, PriorSource};
 use reconstruct::scene::spec::shared_dir;
 use reconstruct::scene::SceneSpec;
 
@@ -56,6 +58,15 @@ struct Args {
     /// Print one JSON object instead of tables.
     #[arg(long)]
     json: bool,
+    /// Label source for the pass's albedo prior (none, oracle, idarb-sim, labels:DIR, idarb).
+    #[arg(long, default_value = "none")]
+    prior: String,
+    /// Weight of the pass's albedo prior (default: the pass's default).
+    #[arg(long)]
+    albedo_prior: Option<f64>,
+    /// Weight of the pass's normal prior (default: the pass's default).
+    #[arg(long)]
+    normal_prior: Option<f64>,
     /// Write every step's loss here, one per line (for comparing runs step by step).
     #[arg(long)]
     losses: Option<std::path::PathBuf>,
@@ -91,8 +102,21 @@ fn main() -> Result<()> {
         pass.final_edge_pixels = e;
     }
     pass.coarse_views &= !args.full_resolution;
+    if let Some(w) = args.albedo_prior {
+        pass.albedo_prior = w;
+    }
+    if let Some(w) = args.normal_prior {
+        pass.normal_prior = w;
+    }
     let t = Instant::now();
-    let outcome = obtain_geometry(&spec, &dataset, GeometrySource::Reconstruct, &pass, !args.json)?;
+    let source: PriorSource = args.prior.parse()?;
+    let labels = if source == PriorSource::None {
+        None
+    } else {
+        let prior = make_prior(&source, &prior_context(0, None))?;
+        Some(prior.labels(&dataset, &(0..dataset.train.len()).collect::<Vec<_>>())?)
+    };
+    let outcome = obtain_geometry(&spec, &dataset, GeometrySource::Reconstruct, &pass, labels.as_deref(), !args.json)?;
     let total = t.elapsed().as_secs_f64();
     let bvh = Bvh::build(&outcome.mesh);
     let scores = score_geometry(&spec, &dataset, &outcome.mesh, &bvh, outcome.hull.as_ref());

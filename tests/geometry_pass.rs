@@ -45,7 +45,7 @@ fn a_sphere_becomes_the_ellipsoid_in_its_images() -> anyhow::Result<()> {
             let up = if z.abs() > 0.9 { Vec3::X } else { Vec3::Z };
             let camera = Camera::look_at(eye, Vec3::ZERO, up, 0.7, 48, 48);
             let target = render_sh(&truth, &kd, &light, &camera, 3).unwrap();
-            GeometryView { name: format!("view {i}"), camera, target }
+            GeometryView { name: format!("view {i}"), camera, target, albedo: None, normal: None }
         })
         .collect();
     let start = icosphere(Vec3::ZERO, 0.8, 3);

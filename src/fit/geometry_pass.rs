@@ -43,11 +43,14 @@ use serde::Serialize;
 use crate::geometry::closest_point::SurfaceQuery;
 use crate::geometry::manifold::{check_closed_manifold, signed_volume};
 use crate::geometry::remesh::isotropic_remesh;
+use crate::color::linear_to_srgb;
 use crate::geometry::Mesh;
 use crate::image::Image;
 use crate::optim::adam::{Adam, GroupConfig, LrSchedule};
 use crate::optim::guarded_step::{degenerate_area2, guard_step};
 use crate::optim::large_steps::{LargeSteps, UniformAdam};
+use crate::optim::prior_loss::prior_loss;
+use crate::optim::srgb_encode;
 use crate::optim::laplacian::UniformLaplacian;
 use crate::optim::vertex_smoothness::VertexSmoothness;
 use crate::render::gbuffer::GBuffer;
@@ -94,6 +97,16 @@ pub struct GeometryPassConfig {
     /// Records written before it existed ran without it, hence `false` when absent.
     #[serde(default)]
     pub coarse_views: bool,
+    /// Weight of the albedo prior: λ · mean over the labelled covered pixels of
+    /// ‖sRGB(kd) − label‖², the material pass's prior term on the per-vertex colour, for views
+    /// that carry an albedo label (`GeometryView::albedo`). 0 switches it off.
+    #[serde(default)]
+    pub albedo_prior: f64,
+    /// Weight of the normal prior: λ · mean over the labelled covered pixels of ‖n − label‖², the
+    /// shading normal against the view's world-space normal label (`GeometryView::normal`), the
+    /// material pass's normal term. 0 switches it off (and leaves it out of the record).
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub normal_prior: f64,
     pub seed: u64,
 }
 
@@ -124,6 +137,8 @@ impl Default for GeometryPassConfig {
             // shading gradient of their own, and the outline is resolved to a pixel anyway.
             final_edge_pixels: 1.5,
             coarse_views: true,
+            albedo_prior: 0.0,
+            normal_prior: 0.0,
             seed: 0,
         }
     }
@@ -135,6 +150,16 @@ pub struct GeometryView {
     pub name: String,
     pub camera: Camera,
     pub target: Image,
+    /// The prior's albedo label, if the view has one: linear RGB with the label's mask as a
+    /// straight alpha, at the target's size.
+    pub albedo: Option<Image>,
+    /// The prior's normal label, if the view has one: the world-space unit normal (x, y, z in
+    /// [−1, 1]) with the label's mask as a straight alpha, at the target's size.
+    pub normal: Option<Image>,
+}
+
+fn is_zero(v: &f64) -> bool {
+    *v == 0.0
 }
 
 /// Per-step record.
@@ -201,6 +226,10 @@ struct ViewTarget {
     /// Linear RGB and alpha, row-major.
     rgb: Arc<[[f32; 3]]>,
     alpha: Arc<[f32]>,
+    /// The albedo label, sRGB-encoded, and the weight of each pixel's label (its mask).
+    albedo: Option<(Arc<[[f32; 3]]>, Arc<[f32]>)>,
+    /// The world-space normal label (renormalised after any resampling) and each pixel's weight.
+    normal: Option<(Arc<[[f32; 3]]>, Arc<[f32]>)>,
 }
 
 fn to_vec3(v: &[f64; 3]) -> Vec3 {
@@ -244,6 +273,8 @@ struct StepInputs<'a> {
     kd: &'a Tensor,
     light: &'a Tensor,
     mask_weight: f64,
+    albedo_prior: f64,
+    normal_prior: f64,
     /// 1 / views in the step: each view's loss is scaled by it, so the views' gradients add up to
     /// the gradient of the batch's mean.
     share: f64,
@@ -277,10 +308,28 @@ fn view_loss_term(view: &ViewTarget, step: &StepInputs, background: Vec3) -> Res
     }
     let n = pixels.len();
     let map = PixelMap { pixels: pixels.into(), width: w, height: h };
+    let mut prior = None;
     let rgb = if n > 0 {
         let sp = surface_points(SurfacePoints { rays: rays.into(), triangles: step.triangles.clone() }, step.positions, step.normals, step.kd)?;
         let normal = sp.narrow(D::Minus1, 0, 3)?;
         let kd_px = sp.narrow(D::Minus1, 3, 3)?;
+        if let (Some((label, weight)), true) = (&view.albedo, step.albedo_prior > 0.0) {
+            let dev = &Device::Cpu;
+            let labels = Tensor::from_vec(map.pixels.iter().flat_map(|&p| label[p as usize]).collect::<Vec<f32>>(), (n, 1, 3), dev)?;
+            let mask = Tensor::from_vec(map.pixels.iter().map(|&p| weight[p as usize]).collect::<Vec<f32>>(), (n, 1, 1), dev)?;
+            let encoded = srgb_encode(&kd_px.clamp(0.0, 1.0)?)?.reshape((n, 1, 3))?;
+            prior = Some(prior_loss(&encoded, &labels, &mask, step.albedo_prior)?);
+        }
+        if let (Some((label, weight)), true) = (&view.normal, step.normal_prior > 0.0) {
+            let dev = &Device::Cpu;
+            let labels = Tensor::from_vec(map.pixels.iter().flat_map(|&p| label[p as usize]).collect::<Vec<f32>>(), (n, 1, 3), dev)?;
+            let mask = Tensor::from_vec(map.pixels.iter().map(|&p| weight[p as usize]).collect::<Vec<f32>>(), (n, 1, 1), dev)?;
+            let term = prior_loss(&normal.reshape((n, 1, 3))?, &labels, &mask, step.normal_prior)?;
+            prior = Some(match prior {
+                Some(p) => (p + term)?,
+                None => term,
+            });
+        }
         shade_diffuse(&kd_px, &normal, step.light)?
     } else {
         Tensor::zeros((0, 3), DType::F32, &Device::Cpu)?
@@ -292,7 +341,11 @@ fn view_loss_term(view: &ViewTarget, step: &StepInputs, background: Vec3) -> Res
     let terms = view_loss(ViewLoss { rgb: view.rgb.clone(), alpha: view.alpha.clone(), background }, &aa)?;
     let (colour, mask) = (terms.get(0)?, terms.get(1)?);
     let mask_mse = mask.to_scalar::<f32>()? as f64 * step.share;
-    let loss = ((colour + (mask * step.mask_weight)?)? * step.share)?;
+    let mut loss = (colour + (mask * step.mask_weight)?)?;
+    if let Some(p) = prior {
+        loss = (loss + p)?;
+    }
+    let loss = (loss * step.share)?;
     Ok(ViewLossTerm { loss, mask_mse, seconds: [t_gbuffer, t.elapsed().as_secs_f64()] })
 }
 
@@ -351,7 +404,23 @@ fn view_targets(views: &[GeometryView], scale: f64) -> Result<Vec<ViewTarget>> {
             };
             let rgb = target.data.chunks_exact(4).map(|p| [p[0], p[1], p[2]]).collect();
             let alpha = target.data.chunks_exact(4).map(|p| p[3]).collect();
-            Ok(ViewTarget { camera, rgb, alpha })
+            let albedo = match &v.albedo {
+                Some(a) => {
+                    let a = if a.width == camera.width && a.height == camera.height { a.clone() } else { a.resized_straight_alpha(camera.width, camera.height)? };
+                    let label = a.data.chunks_exact(4).map(|p| [linear_to_srgb(p[0]), linear_to_srgb(p[1]), linear_to_srgb(p[2])]).collect();
+                    Some((label, a.data.chunks_exact(4).map(|p| p[3]).collect()))
+                }
+                None => None,
+            };
+            let normal = match &v.normal {
+                Some(a) => {
+                    let a = if a.width == camera.width && a.height == camera.height { a.clone() } else { a.resized_straight_alpha(camera.width, camera.height)? };
+                    let label = a.data.chunks_exact(4).map(|p| Vec3::new(p[0], p[1], p[2]).normalize_or_zero().to_array()).collect();
+                    Some((label, a.data.chunks_exact(4).map(|p| p[3]).collect()))
+                }
+                None => None,
+            };
+            Ok(ViewTarget { camera, rgb, alpha, albedo, normal })
         })
         .collect()
 }
@@ -609,6 +678,8 @@ pub fn run_geometry_pass(start: &Mesh, views: &[GeometryView], config: &Geometry
             kd: state.kd.as_tensor(),
             light: light.as_tensor(),
             mask_weight: config.mask_weight,
+            albedo_prior: config.albedo_prior,
+            normal_prior: config.normal_prior,
             share: 1.0 / batch.len() as f64,
         };
         let per_view: Vec<ViewGradients> = batch.par_iter().zip(&backgrounds).map(|(&i, &bg)| view_gradients(&targets[i], &inputs, bg)).collect::<Result<_>>()?;
@@ -743,7 +814,7 @@ mod tests {
             .enumerate()
             .map(|(k, &eye)| {
                 let camera = Camera::look_at(eye, Vec3::ZERO, Vec3::Z, 0.8, 40, 32);
-                Ok(GeometryView { name: format!("v{k}"), target: render_sh(&truth, &kd_truth, &light_sh, &camera, 2)?, camera })
+                Ok(GeometryView { name: format!("v{k}"), target: render_sh(&truth, &kd_truth, &light_sh, &camera, 2)?, camera, albedo: None, normal: None })
             })
             .collect::<Result<_>>()?;
         let targets = view_targets(&views, 1.0)?;
@@ -805,7 +876,7 @@ mod tests {
         let light = constant_light(1.0);
         let camera = Camera::look_at(Vec3::new(0.3, -3.5, 1.5), Vec3::ZERO, Vec3::Z, 0.9, 100, 70);
         let target = render_sh(&sphere, &kd, &light, &camera, 4)?;
-        let coarse = view_targets(&[GeometryView { name: "v".into(), camera: camera.clone(), target }], 0.6)?;
+        let coarse = view_targets(&[GeometryView { name: "v".into(), camera: camera.clone(), target, albedo: None, normal: None }], 0.6)?;
         let c = &coarse[0].camera;
         assert_eq!((c.width, c.height), (60, 42));
         let direct = render_sh(&sphere, &kd, &light, c, 4)?;
@@ -823,7 +894,7 @@ mod tests {
         assert!(m1 > 100.0 && (m0 / m1 - 1.0).abs() < 0.01, "covered {m0} vs {m1}");
         assert!((x0 - x1).abs() < 0.05 && (y0 - y1).abs() < 0.05, "centroid ({x0}, {y0}) vs ({x1}, {y1})");
         // Scale 1 keeps the view as it is.
-        assert_eq!(view_targets(&[GeometryView { name: "v".into(), camera: camera.clone(), target: direct.clone() }], 1.0)?[0].camera.width, 100);
+        assert_eq!(view_targets(&[GeometryView { name: "v".into(), camera: camera.clone(), target: direct.clone(), albedo: None, normal: None }], 1.0)?[0].camera.width, 100);
         Ok(())
     }
 

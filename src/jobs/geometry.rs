@@ -19,6 +19,9 @@ use crate::geometry::hull::{visual_hull, HullOptions, MaskView};
 use crate::eval::geometry_metrics::{geometry_metrics, load_judge_views, view_metrics, GeometryMetricOptions, GeometryMetrics, ViewMetrics};
 use crate::geometry::bvh::Bvh;
 use crate::geometry::Mesh;
+use crate::color::srgb_to_linear;
+use crate::image::Image;
+use crate::prior::view_labels::ViewLabels;
 use crate::scene::dataset::{mask_pixels, Dataset, MASK_THRESHOLD};
 use crate::scene::SceneSpec;
 use crate::scene_data::{ground_truth_mesh, ground_truth_source};
@@ -159,7 +162,10 @@ pub fn resolve_source(spec: &SceneSpec, source: GeometrySource) -> Result<(Geome
 }
 
 /// The geometry of a run on `dataset` from `source`.
-pub fn obtain_geometry(spec: &SceneSpec, dataset: &Dataset, source: GeometrySource, pass: &GeometryPassConfig, progress: bool) -> Result<GeometryOutcome> {
+///
+/// `labels`, indexed like `dataset.train`, are the prior's labels for the geometry pass's albedo
+/// prior (`GeometryPassConfig::albedo_prior`); `None` or an unlabelled view leaves it out.
+pub fn obtain_geometry(spec: &SceneSpec, dataset: &Dataset, source: GeometrySource, pass: &GeometryPassConfig, labels: Option<&[Option<ViewLabels>]>, progress: bool) -> Result<GeometryOutcome> {
     let (used, why) = resolve_source(spec, source)?;
     if progress {
         eprintln!("geometry: {} ({why})", if used == GeometrySource::GroundTruth { "the scene's mesh" } else { "reconstructed from the images" });
@@ -168,17 +174,17 @@ pub fn obtain_geometry(spec: &SceneSpec, dataset: &Dataset, source: GeometrySour
         let mesh = ground_truth_mesh(spec)?;
         return Ok(GeometryOutcome { mesh, vertex_kd: None, hull: None, report: GeometryReport { used, why, hull: None, pass: None, scores: None } });
     }
-    reconstruct(dataset, pass, progress, why)
+    reconstruct(dataset, pass, labels, progress, why)
 }
 
 /// The training views brought to at most [`GEOMETRY_MAX_SIDE`] pixels (box filter over
 /// premultiplied colour, like the material pass's downscaling). A view whose mask is empty does not
 /// show the object, and its silhouette loss would push the mesh out of the frame: it is left out with
 /// a warning (the visual hull skips it too).
-fn geometry_views(dataset: &Dataset) -> Result<Vec<GeometryView>> {
+fn geometry_views(dataset: &Dataset, labels: Option<&[Option<ViewLabels>]>) -> Result<Vec<GeometryView>> {
     let mut views = Vec::with_capacity(dataset.train.len());
     let mut empty = Vec::new();
-    for v in &dataset.train {
+    for (k, v) in dataset.train.iter().enumerate() {
         let rgba = v.load_rgba().with_context(|| format!("geometry pass: training view {}", v.name))?;
         if mask_pixels(rgba.data.chunks_exact(4).map(|p| p[3]), MASK_THRESHOLD) == 0 {
             empty.push(v.name.clone());
@@ -187,10 +193,24 @@ fn geometry_views(dataset: &Dataset) -> Result<Vec<GeometryView>> {
         let side = v.camera.width.max(v.camera.height);
         let s = side.div_ceil(GEOMETRY_MAX_SIDE).max(1);
         let s = if v.camera.width % s == 0 && v.camera.height % s == 0 { s } else { 1 };
+        let albedo = match labels.and_then(|l| l.get(k)).and_then(Option::as_ref) {
+            Some(l) => Some(albedo_label(l, rgba.width, rgba.height).with_context(|| format!("geometry pass: the albedo label of view {}", v.name))?),
+            None => None,
+        };
+        let normal = match labels.and_then(|l| l.get(k)).and_then(Option::as_ref) {
+            Some(l) => Some(normal_label(l, rgba.width, rgba.height, v.camera.c2w).with_context(|| format!("geometry pass: the normal label of view {}", v.name))?),
+            None => None,
+        };
         views.push(if s == 1 {
-            GeometryView { name: v.name.clone(), camera: v.camera.clone(), target: rgba }
+            GeometryView { name: v.name.clone(), camera: v.camera.clone(), target: rgba, albedo, normal }
         } else {
-            GeometryView { name: v.name.clone(), camera: v.camera.resized(v.camera.width / s, v.camera.height / s), target: rgba.downsample_straight_alpha(s) }
+            GeometryView {
+                name: v.name.clone(),
+                camera: v.camera.resized(v.camera.width / s, v.camera.height / s),
+                target: rgba.downsample_straight_alpha(s),
+                albedo: albedo.map(|a| a.downsample_straight_alpha(s)),
+                normal: normal.map(|a| a.downsample_straight_alpha(s)),
+            }
         });
     }
     if !empty.is_empty() {
@@ -202,7 +222,52 @@ fn geometry_views(dataset: &Dataset) -> Result<Vec<GeometryView>> {
     Ok(views)
 }
 
-fn reconstruct(dataset: &Dataset, pass: &GeometryPassConfig, progress: bool, why: String) -> Result<GeometryOutcome> {
+/// A label's albedo as the geometry pass takes it: linear RGB with the label's mask as alpha.
+fn albedo_label(labels: &ViewLabels, width: usize, height: usize) -> Result<Image> {
+    let (a, m) = (&labels.albedo, &labels.mask);
+    anyhow::ensure!(
+        a.width == width && a.height == height && m.width == width && m.height == height && a.channels == 3 && m.channels == 1,
+        "albedo {}×{}×{} and mask {}×{}×{} for a {width}×{height} view",
+        a.width,
+        a.height,
+        a.channels,
+        m.width,
+        m.height,
+        m.channels
+    );
+    let mut out = Image::new(width, height, 4);
+    for i in 0..width * height {
+        let c = [0, 1, 2].map(|j| srgb_to_linear(a.data[3 * i + j]));
+        out.data[4 * i..4 * i + 4].copy_from_slice(&[c[0], c[1], c[2], m.data[i]]);
+    }
+    Ok(out)
+}
+
+/// A label's normal as the geometry pass takes it: the world-space unit normal with the label's
+/// mask as alpha.
+fn normal_label(labels: &ViewLabels, width: usize, height: usize, c2w: glam::Mat4) -> Result<Image> {
+    let (n, m) = (&labels.normal, &labels.mask);
+    anyhow::ensure!(
+        n.width == width && n.height == height && m.width == width && m.height == height && n.channels >= 3 && m.channels == 1,
+        "normal {}×{}×{} and mask {}×{}×{} for a {width}×{height} view",
+        n.width,
+        n.height,
+        n.channels,
+        m.width,
+        m.height,
+        m.channels
+    );
+    let c = n.channels;
+    let mut out = Image::new(width, height, 4);
+    for i in 0..width * height {
+        let w = crate::fit::labels::world_normal(glam::Vec3::from_slice(&n.data[c * i..c * i + 3]), c2w);
+        let mask = if w == glam::Vec3::ZERO { 0.0 } else { m.data[i] };
+        out.data[4 * i..4 * i + 4].copy_from_slice(&[w.x, w.y, w.z, mask]);
+    }
+    Ok(out)
+}
+
+fn reconstruct(dataset: &Dataset, pass: &GeometryPassConfig, labels: Option<&[Option<ViewLabels>]>, progress: bool, why: String) -> Result<GeometryOutcome> {
     let t = Instant::now();
     let masks: Vec<MaskView> = dataset
         .train
@@ -224,7 +289,7 @@ fn reconstruct(dataset: &Dataset, pass: &GeometryPassConfig, progress: bool, why
     };
 
     let t = Instant::now();
-    let views = geometry_views(dataset)?;
+    let views = geometry_views(dataset, labels.filter(|_| pass.albedo_prior > 0.0 || pass.normal_prior > 0.0))?;
     let resolution = [views[0].camera.width, views[0].camera.height];
     let result = run_geometry_pass(&hull.mesh, &views, pass, progress).context("geometry pass")?;
     let pass_record = PassRecord {

@@ -147,7 +147,7 @@ fn save(folder: &Path, key: &GeometryKey, outcome: &GeometryOutcome) -> Result<(
 pub fn obtain_or_reuse(folder: &Path, spec: &SceneSpec, dataset: &Dataset, source: GeometrySource, pass: &GeometryPassConfig, progress: bool) -> Result<GeometryOutcome> {
     let key = GeometryKey::of(spec, dataset, source, pass)?;
     if key.geometry.source != GeometrySource::Reconstruct {
-        return obtain_geometry(spec, dataset, source, pass, progress);
+        return obtain_geometry(spec, dataset, source, pass, None, progress);
     }
     if let Some(outcome) = load(folder, &key) {
         if progress {
@@ -155,7 +155,7 @@ pub fn obtain_or_reuse(folder: &Path, spec: &SceneSpec, dataset: &Dataset, sourc
         }
         return Ok(outcome);
     }
-    let outcome = obtain_geometry(spec, dataset, source, pass, progress)?;
+    let outcome = obtain_geometry(spec, dataset, source, pass, None, progress)?;
     save(folder, &key, &outcome)?;
     Ok(outcome)
 }

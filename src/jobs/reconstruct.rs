@@ -174,7 +174,7 @@ fn prepare_in(
     let t = Instant::now();
     let outcome = match geometry_folder {
         Some(folder) => obtain_or_reuse(folder, &spec, &dataset, geometry, pass, progress)?,
-        None => obtain_geometry(&spec, &dataset, geometry, pass, progress)?,
+        None => obtain_geometry(&spec, &dataset, geometry, pass, None, progress)?,
     };
     stages.push(("geometry".to_string(), t.elapsed().as_secs_f64()));
     let t = Instant::now();
