@@ -58,12 +58,9 @@ struct Args {
     /// Print one JSON object instead of tables.
     #[arg(long)]
     json: bool,
-    /// Label source for the pass's albedo prior (none, oracle, idarb-sim, labels:DIR, idarb).
+    /// Label source for the pass's normal prior (none, oracle, idarb-sim, labels:DIR, idarb).
     #[arg(long, default_value = "none")]
     prior: String,
-    /// Weight of the pass's albedo prior (default: the pass's default).
-    #[arg(long)]
-    albedo_prior: Option<f64>,
     /// Weight of the pass's normal prior (default: the pass's default).
     #[arg(long)]
     normal_prior: Option<f64>,
@@ -102,9 +99,6 @@ fn main() -> Result<()> {
         pass.final_edge_pixels = e;
     }
     pass.coarse_views &= !args.full_resolution;
-    if let Some(w) = args.albedo_prior {
-        pass.albedo_prior = w;
-    }
     if let Some(w) = args.normal_prior {
         pass.normal_prior = w;
     }

@@ -134,7 +134,8 @@ enum Command {
         scene: String,
         #[arg(long, default_value_t = 300)]
         iterations: usize,
-        /// Where the mesh comes from (one geometry pass serves all rows: the prior does not enter it).
+        /// Where the mesh comes from (reconstructed: once per prior, whose normal labels the pass
+        /// uses, and once without for the `none` row; known: one mesh for all rows).
         #[arg(long, value_enum, default_value = "reconstruct")]
         geometry: Geometry,
         /// Iterations of the geometry pass.

@@ -29,7 +29,7 @@ fn sphere_views(distance: f32, size: usize) -> Vec<GeometryView> {
             let up = if z.abs() > 0.9 { Vec3::X } else { Vec3::Z };
             let camera = Camera::look_at(eye, Vec3::ZERO, up, 0.7, size, size);
             let target = render_sh(&truth, &kd, &light, &camera, 2).unwrap();
-            GeometryView { name: format!("view {i}"), camera, target, albedo: None, normal: None }
+            GeometryView { name: format!("view {i}"), camera, target, normal: None }
         })
         .collect()
 }

@@ -81,6 +81,21 @@ fn each_setting_separates_runs_and_is_named() -> Result<()> {
     let rec = Case { opts: ReconstructOptions { geometry: GeometrySource::Reconstruct, ..b.opts.clone() }, prior: PriorSource::None };
     separates(&rec, "geometry.pass.iterations", |c| c.opts.geometry_pass = GeometryPassConfig { iterations: 5, ..GeometryPassConfig::default() })?;
     separates(&rec, "geometry.pass.seed", |c| c.opts.geometry_pass.seed = 1)?;
+    // A reconstruction with a prior holds its normals to the labels: the prior is part of the
+    // geometry, and so is the prior's weight there.
+    let rec_sim = Case { opts: rec.opts.clone(), prior: PriorSource::IdarbSim(1.0) };
+    separates(&rec_sim, "geometry.labels.source", |c| c.prior = PriorSource::Oracle)?;
+    separates(&rec_sim, "geometry.pass.normal_prior", |c| c.opts.geometry_pass.normal_prior *= 2.0)?;
+    assert_eq!(identity(&rec_sim)?.geometry.labels, Some(identity(&rec_sim)?.prior));
+    // Without a prior, or with the scene's mesh, the pass's normal prior does not enter: the
+    // identity is the one written before the prior existed (no `normal_prior`, no `labels`).
+    let weightless = |c: &Case| Case { opts: ReconstructOptions { geometry_pass: GeometryPassConfig { normal_prior: 0.0, ..c.opts.geometry_pass.clone() }, ..c.opts.clone() }, prior: c.prior.clone() };
+    assert_eq!(identity(&rec)?, identity(&weightless(&rec))?);
+    let text = serde_json::to_string(&identity(&rec)?.geometry)?;
+    assert!(!text.contains("normal_prior") && !text.contains("labels"), "{text}");
+    let gt_sim = Case { opts: b.opts.clone(), prior: PriorSource::IdarbSim(1.0) };
+    assert_eq!(identity(&gt_sim)?.geometry, identity(&weightless(&gt_sim))?.geometry);
+    assert_eq!(identity(&gt_sim)?.geometry.labels, None);
 
     // Prior: source, level, labelled views.
     separates(&b, "prior.source", |c| c.prior = PriorSource::Oracle)?;

@@ -14,7 +14,8 @@ use crate::eval::protocol::Evaluation;
 use crate::prior::source::PriorSource;
 use crate::report::plot::{write_line_plot, LinePlot, Series};
 
-use super::reconstruct::{prepare_run, prior_context, run_prepared, views_with_prior, ReconstructOptions};
+use super::reconstruct::{prior_context, run_prepared, views_with_prior, ReconstructOptions};
+use super::shared_preparation::SharedPreparation;
 
 #[derive(Clone, Debug)]
 pub struct AblationOptions {
@@ -115,26 +116,28 @@ pub fn run_folder(out: &Path, source: &PriorSource) -> PathBuf {
 pub fn run(opts: &AblationOptions) -> Result<AblationReport> {
     let base = &opts.base;
     std::fs::create_dir_all(&base.out).with_context(|| format!("cannot create {}", base.out.display()))?;
-    let prepared = prepare_run(base)?;
+    let mut shared = SharedPreparation::new(&base.out);
     let ctx = prior_context(base.fit.seed, base.idarb_weights.clone());
-    let mut rows = Vec::new();
+    let (mut rows, mut scene) = (Vec::new(), base.scene.clone());
     for source in &all_sources(opts) {
         let t = Instant::now();
-        let (views, description) = match views_with_prior(&prepared, source, &ctx, base.labelled_views) {
+        let mut o = base.clone();
+        o.out = run_folder(&base.out, source);
+        o.fit.prior_source = source.tag();
+        let prepared = shared.get(&o, source)?;
+        scene = prepared.spec.name.clone();
+        let (views, description) = match views_with_prior(prepared, source, &ctx, base.labelled_views) {
             Ok(v) => v,
             Err(e) => {
                 eprintln!("ablation: skipping --prior {}: {e:#}", source.tag());
                 continue;
             }
         };
-        let mut o = base.clone();
-        o.out = run_folder(&base.out, source);
-        o.fit.prior_source = source.tag();
         eprintln!("ablation: {} → {}", source.tag(), o.out.display());
-        let report = run_prepared(&prepared, views, &o, source, &description)?;
+        let report = run_prepared(prepared, views, &o, source, &description)?;
         rows.push(AblationRow { prior: source.tag(), description, evaluation: report.evaluation, seconds: t.elapsed().as_secs_f64() });
     }
-    finish(prepared.spec.name.clone(), rows, &opts.sweep, &base.out)
+    finish(scene, rows, &opts.sweep, &base.out)
 }
 
 /// The report of finished rows (in table order): picks the sweep's rows, draws

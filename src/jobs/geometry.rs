@@ -19,8 +19,8 @@ use crate::geometry::hull::{visual_hull, HullOptions, MaskView};
 use crate::eval::geometry_metrics::{geometry_metrics, load_judge_views, view_metrics, GeometryMetricOptions, GeometryMetrics, ViewMetrics};
 use crate::geometry::bvh::Bvh;
 use crate::geometry::Mesh;
-use crate::color::srgb_to_linear;
 use crate::image::Image;
+use crate::prior::source::Prior;
 use crate::prior::view_labels::ViewLabels;
 use crate::scene::dataset::{mask_pixels, Dataset, MASK_THRESHOLD};
 use crate::scene::SceneSpec;
@@ -161,11 +161,39 @@ pub fn resolve_source(spec: &SceneSpec, source: GeometrySource) -> Result<(Geome
     })
 }
 
-/// The geometry of a run on `dataset` from `source`.
-///
-/// `labels`, indexed like `dataset.train`, are the prior's labels for the geometry pass's albedo
-/// prior (`GeometryPassConfig::albedo_prior`); `None` or an unlabelled view leaves it out.
-pub fn obtain_geometry(spec: &SceneSpec, dataset: &Dataset, source: GeometrySource, pass: &GeometryPassConfig, labels: Option<&[Option<ViewLabels>]>, progress: bool) -> Result<GeometryOutcome> {
+/// The labels a reconstruction's geometry pass holds its shading normals to
+/// (`GeometryPassConfig::normal_prior`): the run's prior, asked only when the pass runs (a
+/// geometry reused from the run folder needs none).
+pub struct PassLabels<'a> {
+    pub prior: &'a dyn Prior,
+    /// The labelled training views, as indices into `dataset.train`.
+    pub views: Vec<usize>,
+}
+
+impl PassLabels<'_> {
+    /// The labels indexed like `dataset.train` (`None` for a view without one).
+    fn get(&self, dataset: &Dataset) -> Result<Vec<Option<ViewLabels>>> {
+        let mut all = vec![None; dataset.train.len()];
+        for (&i, l) in self.views.iter().zip(self.prior.labels(dataset, &self.views).context("labels for the geometry pass's normal prior")?) {
+            all[i] = l;
+        }
+        Ok(all)
+    }
+}
+
+/// The pass settings a reconstruction runs with: the normal prior only when there are labels
+/// (`labelled`), so a run without a prior records (and is identified by) a pass without one.
+pub fn pass_settings(pass: &GeometryPassConfig, labelled: bool) -> GeometryPassConfig {
+    let mut used = pass.clone();
+    if !labelled {
+        used.normal_prior = 0.0;
+    }
+    used
+}
+
+/// The geometry of a run on `dataset` from `source`. A reconstruction's pass holds its normals
+/// to `labels` when given (and its normal prior's weight is not 0).
+pub fn obtain_geometry(spec: &SceneSpec, dataset: &Dataset, source: GeometrySource, pass: &GeometryPassConfig, labels: Option<&PassLabels>, progress: bool) -> Result<GeometryOutcome> {
     let (used, why) = resolve_source(spec, source)?;
     if progress {
         eprintln!("geometry: {} ({why})", if used == GeometrySource::GroundTruth { "the scene's mesh" } else { "reconstructed from the images" });
@@ -193,22 +221,17 @@ fn geometry_views(dataset: &Dataset, labels: Option<&[Option<ViewLabels>]>) -> R
         let side = v.camera.width.max(v.camera.height);
         let s = side.div_ceil(GEOMETRY_MAX_SIDE).max(1);
         let s = if v.camera.width % s == 0 && v.camera.height % s == 0 { s } else { 1 };
-        let albedo = match labels.and_then(|l| l.get(k)).and_then(Option::as_ref) {
-            Some(l) => Some(albedo_label(l, rgba.width, rgba.height).with_context(|| format!("geometry pass: the albedo label of view {}", v.name))?),
-            None => None,
-        };
         let normal = match labels.and_then(|l| l.get(k)).and_then(Option::as_ref) {
             Some(l) => Some(normal_label(l, rgba.width, rgba.height, v.camera.c2w).with_context(|| format!("geometry pass: the normal label of view {}", v.name))?),
             None => None,
         };
         views.push(if s == 1 {
-            GeometryView { name: v.name.clone(), camera: v.camera.clone(), target: rgba, albedo, normal }
+            GeometryView { name: v.name.clone(), camera: v.camera.clone(), target: rgba, normal }
         } else {
             GeometryView {
                 name: v.name.clone(),
                 camera: v.camera.resized(v.camera.width / s, v.camera.height / s),
                 target: rgba.downsample_straight_alpha(s),
-                albedo: albedo.map(|a| a.downsample_straight_alpha(s)),
                 normal: normal.map(|a| a.downsample_straight_alpha(s)),
             }
         });
@@ -220,27 +243,6 @@ fn geometry_views(dataset: &Dataset, labels: Option<&[Option<ViewLabels>]>) -> R
         bail!("geometry pass: every training view's mask is empty ({}); nothing shows the object", empty.join(", "));
     }
     Ok(views)
-}
-
-/// A label's albedo as the geometry pass takes it: linear RGB with the label's mask as alpha.
-fn albedo_label(labels: &ViewLabels, width: usize, height: usize) -> Result<Image> {
-    let (a, m) = (&labels.albedo, &labels.mask);
-    anyhow::ensure!(
-        a.width == width && a.height == height && m.width == width && m.height == height && a.channels == 3 && m.channels == 1,
-        "albedo {}×{}×{} and mask {}×{}×{} for a {width}×{height} view",
-        a.width,
-        a.height,
-        a.channels,
-        m.width,
-        m.height,
-        m.channels
-    );
-    let mut out = Image::new(width, height, 4);
-    for i in 0..width * height {
-        let c = [0, 1, 2].map(|j| srgb_to_linear(a.data[3 * i + j]));
-        out.data[4 * i..4 * i + 4].copy_from_slice(&[c[0], c[1], c[2], m.data[i]]);
-    }
-    Ok(out)
 }
 
 /// A label's normal as the geometry pass takes it: the world-space unit normal with the label's
@@ -267,7 +269,8 @@ fn normal_label(labels: &ViewLabels, width: usize, height: usize, c2w: glam::Mat
     Ok(out)
 }
 
-fn reconstruct(dataset: &Dataset, pass: &GeometryPassConfig, labels: Option<&[Option<ViewLabels>]>, progress: bool, why: String) -> Result<GeometryOutcome> {
+fn reconstruct(dataset: &Dataset, pass: &GeometryPassConfig, labels: Option<&PassLabels>, progress: bool, why: String) -> Result<GeometryOutcome> {
+    let pass = &pass_settings(pass, labels.is_some());
     let t = Instant::now();
     let masks: Vec<MaskView> = dataset
         .train
@@ -289,7 +292,11 @@ fn reconstruct(dataset: &Dataset, pass: &GeometryPassConfig, labels: Option<&[Op
     };
 
     let t = Instant::now();
-    let views = geometry_views(dataset, labels.filter(|_| pass.albedo_prior > 0.0 || pass.normal_prior > 0.0))?;
+    let labels = match labels {
+        Some(l) if pass.normal_prior > 0.0 => Some(l.get(dataset)?),
+        _ => None,
+    };
+    let views = geometry_views(dataset, labels.as_deref())?;
     let resolution = [views[0].camera.width, views[0].camera.height];
     let result = run_geometry_pass(&hull.mesh, &views, pass, progress).context("geometry pass")?;
     let pass_record = PassRecord {

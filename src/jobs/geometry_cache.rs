@@ -23,8 +23,8 @@ use crate::material::{BaseColor, PartMaterial, Scalar};
 use crate::scene::dataset::Dataset;
 use crate::scene::SceneSpec;
 
-use super::geometry::{obtain_geometry, GeometryOutcome, GeometryReport, GeometrySource, HullRecord, PassRecord};
-use super::run_identity::{DataIdentity, GeometryIdentity, SceneIdentity};
+use super::geometry::{obtain_geometry, GeometryOutcome, GeometryReport, GeometrySource, HullRecord, PassLabels, PassRecord};
+use super::run_identity::{DataIdentity, GeometryIdentity, PriorIdentity, SceneIdentity};
 
 /// The file in the run folder.
 pub const GEOMETRY_FILE: &str = "geometry.json";
@@ -102,8 +102,8 @@ struct Saved {
 }
 
 impl GeometryKey {
-    pub fn of(spec: &SceneSpec, dataset: &Dataset, source: GeometrySource, pass: &GeometryPassConfig) -> Result<GeometryKey> {
-        Ok(GeometryKey { data: DataIdentity::of(dataset)?, scene: SceneIdentity::of(spec), geometry: GeometryIdentity::of(spec, source, pass)? })
+    pub fn of(spec: &SceneSpec, dataset: &Dataset, source: GeometrySource, pass: &GeometryPassConfig, prior: Option<&PriorIdentity>) -> Result<GeometryKey> {
+        Ok(GeometryKey { data: DataIdentity::of(dataset)?, scene: SceneIdentity::of(spec), geometry: GeometryIdentity::of(spec, source, pass, prior)? })
     }
 }
 
@@ -143,9 +143,10 @@ fn save(folder: &Path, key: &GeometryKey, outcome: &GeometryOutcome) -> Result<(
 }
 
 /// The geometry of a run ([`obtain_geometry`]), reused from `folder` when it holds the result of
-/// the same identity, else made and (when reconstructed) saved there.
-pub fn obtain_or_reuse(folder: &Path, spec: &SceneSpec, dataset: &Dataset, source: GeometrySource, pass: &GeometryPassConfig, progress: bool) -> Result<GeometryOutcome> {
-    let key = GeometryKey::of(spec, dataset, source, pass)?;
+/// the same identity, else made and (when reconstructed) saved there. `labels` are the run's
+/// prior (its identity and its labels) for the pass's normal prior.
+pub fn obtain_or_reuse(folder: &Path, spec: &SceneSpec, dataset: &Dataset, source: GeometrySource, pass: &GeometryPassConfig, labels: Option<(&PriorIdentity, &PassLabels)>, progress: bool) -> Result<GeometryOutcome> {
+    let key = GeometryKey::of(spec, dataset, source, pass, labels.map(|l| l.0))?;
     if key.geometry.source != GeometrySource::Reconstruct {
         return obtain_geometry(spec, dataset, source, pass, None, progress);
     }
@@ -155,7 +156,7 @@ pub fn obtain_or_reuse(folder: &Path, spec: &SceneSpec, dataset: &Dataset, sourc
         }
         return Ok(outcome);
     }
-    let outcome = obtain_geometry(spec, dataset, source, pass, None, progress)?;
+    let outcome = obtain_geometry(spec, dataset, source, pass, labels.map(|l| l.1), progress)?;
     save(folder, &key, &outcome)?;
     Ok(outcome)
 }

@@ -9,6 +9,7 @@ pub mod overrides;
 pub mod reconstruct;
 pub mod run_folder;
 pub mod run_identity;
+pub mod shared_preparation;
 pub mod report_markdown;
 pub mod render;
 pub mod sweep;

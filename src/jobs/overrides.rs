@@ -57,6 +57,10 @@ pub struct SettingOverrides {
     /// Iterations of the geometry pass (when the geometry is reconstructed).
     #[arg(long)]
     pub geometry_iterations: Option<usize>,
+    /// Weight of the geometry pass's normal prior: the shading normals held to the prior's normal
+    /// labels while the mesh is reconstructed (only with a prior; 0 turns it off; docs/geometry.md).
+    #[arg(long)]
+    pub geometry_normal_prior: Option<f64>,
     /// Move the vertices in the material pass too, through the shading normal (Monte Carlo
     /// training only; docs/geometry.md).
     #[arg(long)]
@@ -94,10 +98,12 @@ impl SettingOverrides {
         fit
     }
 
-    /// The geometry pass settings: the defaults and `--geometry-iterations`.
+    /// The geometry pass settings: the defaults, `--geometry-iterations` and
+    /// `--geometry-normal-prior`.
     pub fn geometry_pass(&self) -> GeometryPassConfig {
         let mut pass = GeometryPassConfig::default();
         if let Some(v) = self.geometry_iterations { pass.iterations = v; }
+        if let Some(v) = self.geometry_normal_prior { pass.normal_prior = v; }
         pass
     }
 }
@@ -114,5 +120,7 @@ mod tests {
         assert_eq!(FitConfig { prior: fit.prior, iterations: 7, mode: ShadingMode::MonteCarlo, ..FitConfig::default() }, fit);
         assert_eq!(SettingOverrides::default().fit_config(None), FitConfig::default());
         assert_eq!(SettingOverrides { geometry_iterations: Some(3), ..Default::default() }.geometry_pass().iterations, 3);
+        let pass = SettingOverrides { geometry_normal_prior: Some(0.0), ..Default::default() }.geometry_pass();
+        assert_eq!(GeometryPassConfig { normal_prior: 0.0, ..GeometryPassConfig::default() }, pass);
     }
 }

@@ -8,7 +8,7 @@
 //! `report.json`, written last. What makes two runs the same run, and how a killed run resumes:
 //! docs/runs.md.
 
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::Instant;
 
@@ -30,9 +30,9 @@ use crate::fit::view_screening::screen_views;
 use crate::geometry::atlas::{self, Atlas, AtlasSource};
 use crate::geometry::bvh::Bvh;
 pub use crate::jobs::geometry::GeometrySource;
-use crate::jobs::geometry::{obtain_geometry, score_geometry, scores_summary, GeometryReport};
+use crate::jobs::geometry::{obtain_geometry, score_geometry, scores_summary, GeometryOutcome, GeometryReport, PassLabels};
 use crate::jobs::geometry_cache::obtain_or_reuse;
-use crate::jobs::run_identity::RunIdentity;
+use crate::jobs::run_identity::{PriorIdentity, RunIdentity};
 use crate::atomic_write;
 use crate::fit::geometry_pass::{interpolate, transfer_vertex_values, GeometryPassConfig};
 use crate::material::texture_maps::MaterialTextures;
@@ -143,27 +143,31 @@ pub fn load_scene(scene: &str, data: Option<&PathBuf>) -> Result<(SceneSpec, Dat
 
 /// Load the scene, obtain the geometry (the scene's mesh or reconstructed), build the atlas and
 /// BVH, choose the effects, trace the training views. `downscale` > 1 trains on views
-/// `downscale`× smaller (box-filtered targets).
+/// `downscale`× smaller (box-filtered targets). A reconstruction's pass runs without labels.
 pub fn prepare(scene: &str, data: Option<&PathBuf>, geometry: GeometrySource, pass: &GeometryPassConfig, fit: &FitConfig, downscale: usize, progress: bool) -> Result<Prepared> {
-    prepare_in(None, scene, data, geometry, pass, fit, downscale, progress)
+    prepare_in(scene, data, fit, downscale, progress, |spec, dataset| obtain_geometry(spec, dataset, geometry, pass, None, progress))
 }
 
-/// [`prepare`] for a run of `opts`: reconstructed geometry is kept in `opts.out` and reused from
-/// there by a rerun of the same identity (`jobs::geometry_cache`).
-pub fn prepare_run(opts: &ReconstructOptions) -> Result<Prepared> {
-    prepare_in(Some(&opts.out), &opts.scene, opts.data.as_ref(), opts.geometry, &opts.geometry_pass, &opts.fit, opts.downscale, opts.progress)
+/// [`prepare`] for a run of `opts` with `prior`: a reconstruction's pass holds its normals to the
+/// prior's labels (of the views the run labels), and is kept in `opts.out` and reused from there
+/// by a rerun of the same identity (`jobs::geometry_cache`).
+pub fn prepare_run(opts: &ReconstructOptions, prior: &PriorSource) -> Result<Prepared> {
+    prepare_in(&opts.scene, opts.data.as_ref(), &opts.fit, opts.downscale, opts.progress, |spec, dataset| {
+        let identity = PriorIdentity::of(prior, opts.labelled_views, dataset);
+        let source = make_prior(prior, &prior_context(opts.fit.seed, opts.idarb_weights.clone()))?;
+        let labels = PassLabels { prior: source.as_ref(), views: labelled_views(dataset.train.len(), opts.labelled_views) };
+        let given = identity.labels_any().then_some((&identity, &labels));
+        obtain_or_reuse(&opts.out, spec, dataset, opts.geometry, &opts.geometry_pass, given, opts.progress)
+    })
 }
 
-#[allow(clippy::too_many_arguments)]
 fn prepare_in(
-    geometry_folder: Option<&Path>,
     scene: &str,
     data: Option<&PathBuf>,
-    geometry: GeometrySource,
-    pass: &GeometryPassConfig,
     fit: &FitConfig,
     downscale: usize,
     progress: bool,
+    obtain: impl FnOnce(&SceneSpec, &Dataset) -> Result<GeometryOutcome>,
 ) -> Result<Prepared> {
     let texture_res = fit.texture_res;
     let mut stages = Vec::new();
@@ -172,10 +176,7 @@ fn prepare_in(
     stages.push(("load scene".to_string(), t.elapsed().as_secs_f64()));
 
     let t = Instant::now();
-    let outcome = match geometry_folder {
-        Some(folder) => obtain_or_reuse(folder, &spec, &dataset, geometry, pass, progress)?,
-        None => obtain_geometry(&spec, &dataset, geometry, pass, None, progress)?,
-    };
+    let outcome = obtain(&spec, &dataset)?;
     stages.push(("geometry".to_string(), t.elapsed().as_secs_f64()));
     let t = Instant::now();
     let mesh = outcome.mesh;
@@ -440,7 +441,7 @@ pub fn prior_context(seed: u64, idarb_weights: Option<PathBuf>) -> PriorContext 
 
 /// Prepare the scene and run (the `reconstruct` command).
 pub fn run(opts: &ReconstructOptions, prior: &PriorSource) -> Result<ReconstructReport> {
-    let prepared = prepare_run(opts)?;
+    let prepared = prepare_run(opts, prior)?;
     if opts.progress {
         eprintln!("scene {}: {} training views; atlas: {}", prepared.spec.name, prepared.views.len(), atlas_description(&prepared.atlas));
         eprintln!("effects: {}", prepared.effects);

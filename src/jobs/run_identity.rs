@@ -28,7 +28,7 @@ use crate::scene::dataset::{Dataset, Split};
 use crate::scene::SceneSpec;
 use crate::scene_data::{ground_truth_source, GroundTruthSource};
 
-use super::geometry::{resolve_source, GeometrySource};
+use super::geometry::{pass_settings, resolve_source, GeometrySource};
 use super::reconstruct::ReconstructOptions;
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -75,8 +75,13 @@ pub struct GeometryIdentity {
     pub source: GeometrySource,
     /// The ground-truth mesh file and its length in bytes (`builtin` for the generated scene).
     pub mesh: Option<String>,
-    /// The geometry pass settings (reconstruction only).
+    /// The geometry pass settings (reconstruction only), as the pass runs them
+    /// (`jobs::geometry::pass_settings`).
     pub pass: Option<GeometryPassConfig>,
+    /// The labels the pass's normal prior holds the mesh to (a reconstruction with a prior whose
+    /// pass weighs it); left out otherwise, so identities from before the prior keep their digests.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub labels: Option<PriorIdentity>,
 }
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -171,10 +176,14 @@ impl SceneIdentity {
 }
 
 impl GeometryIdentity {
-    pub fn of(spec: &SceneSpec, source: GeometrySource, pass: &GeometryPassConfig) -> Result<GeometryIdentity> {
+    /// The identity of the geometry from `source`; a reconstruction's pass holds its normals to
+    /// the labels of `prior` (`None`: no prior).
+    pub fn of(spec: &SceneSpec, source: GeometrySource, pass: &GeometryPassConfig, prior: Option<&PriorIdentity>) -> Result<GeometryIdentity> {
         let (used, _) = resolve_source(spec, source)?;
         if used != GeometrySource::GroundTruth {
-            return Ok(GeometryIdentity { source: used, mesh: None, pass: Some(pass.clone()) });
+            let pass = pass_settings(pass, prior.is_some());
+            let labels = prior.filter(|_| pass.normal_prior > 0.0).cloned();
+            return Ok(GeometryIdentity { source: used, mesh: None, pass: Some(pass), labels });
         }
         let mesh = match ground_truth_source(spec)? {
             Some(GroundTruthSource::Builtin) => Some("builtin".to_string()),
@@ -184,7 +193,7 @@ impl GeometryIdentity {
             }
             None => None,
         };
-        Ok(GeometryIdentity { source: used, mesh, pass: None })
+        Ok(GeometryIdentity { source: used, mesh, pass: None, labels: None })
     }
 }
 
@@ -197,19 +206,29 @@ pub fn mode_tag(auto: bool, mode: ShadingMode) -> &'static str {
     }
 }
 
+impl PriorIdentity {
+    /// The identity of `prior` labelling `labelled` training views of `dataset` (at most all).
+    pub fn of(prior: &PriorSource, labelled: usize, dataset: &Dataset) -> PriorIdentity {
+        PriorIdentity { source: prior.tag(), labelled_views: (*prior != PriorSource::None).then(|| labelled.min(dataset.train.len())) }
+    }
+
+    /// Whether the prior labels any view.
+    pub fn labels_any(&self) -> bool {
+        self.labelled_views.is_some_and(|n| n > 0)
+    }
+}
+
 impl RunIdentity {
     /// The identity of a run of `opts` with `prior`.
     pub fn new(spec: &SceneSpec, dataset: &Dataset, opts: &ReconstructOptions, prior: &PriorSource) -> Result<RunIdentity> {
         let mut fit = opts.fit.resume_settings();
         fit.prior_source = prior.tag();
+        let prior = PriorIdentity::of(prior, opts.labelled_views, dataset);
         Ok(RunIdentity {
             data: DataIdentity::of(dataset)?,
             scene: SceneIdentity::of(spec),
-            geometry: GeometryIdentity::of(spec, opts.geometry, &opts.geometry_pass)?,
-            prior: PriorIdentity {
-                source: prior.tag(),
-                labelled_views: (*prior != PriorSource::None).then(|| opts.labelled_views.min(dataset.train.len())),
-            },
+            geometry: GeometryIdentity::of(spec, opts.geometry, &opts.geometry_pass, prior.labels_any().then_some(&prior))?,
+            prior,
             training: TrainingIdentity { mode: mode_tag(opts.auto_mode, opts.fit.mode).to_string(), effects: opts.effects_override, downscale: opts.downscale, fit },
             evaluation: EvaluationIdentity { spp: opts.eval_spp, test_views: opts.eval_test_views.map(|n| n.min(dataset.test.len())) },
             decided: None,

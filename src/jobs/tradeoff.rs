@@ -18,7 +18,8 @@ use crate::render::view::ShadingMode;
 use crate::report::pareto::pareto_front;
 use crate::report::plot::{write_pareto_plot, ScatterPoint};
 
-use super::reconstruct::{prepare_run, prior_context, run_prepared, views_with_prior, Prepared, ReconstructOptions};
+use super::reconstruct::{prior_context, run_prepared, views_with_prior, ReconstructOptions};
+use super::shared_preparation::SharedPreparation;
 use super::run_identity::{digest_of, SHORT_DIGEST};
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -87,14 +88,11 @@ pub fn default_points(iterations: usize) -> Vec<TradeoffPoint> {
 
 pub fn run(base: &ReconstructOptions, points: &[TradeoffPoint]) -> Result<Vec<TradeoffResult>> {
     std::fs::create_dir_all(&base.out).with_context(|| format!("cannot create {}", base.out.display()))?;
-    let mut prepared: Vec<(usize, Prepared)> = Vec::new();
+    let mut shared = SharedPreparation::new(&base.out);
     let mut results = Vec::new();
     for (k, pt) in points.iter().enumerate() {
-        if !prepared.iter().any(|(d, _)| *d == pt.downscale) {
-            prepared.push((pt.downscale, prepare_run(&point_options(base, k, pt)?.0)?));
-        }
-        let prep = &prepared.iter().find(|(d, _)| *d == pt.downscale).expect("prepared above").1;
         let (o, source) = point_options(base, k, pt)?;
+        let prep = shared.get(&o, &source)?;
         let ctx = prior_context(base.fit.seed, base.idarb_weights.clone());
         let (views, description) = views_with_prior(prep, &source, &ctx, pt.labelled_views)?;
         eprintln!("trade-off {}/{}: {}", k + 1, points.len(), pt.name);

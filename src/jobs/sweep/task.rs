@@ -106,7 +106,7 @@ pub fn run(line: &SweepLine, force: bool) -> Result<bool> {
 pub fn run_spec(spec: &RunSpec) -> Result<ReconstructReport> {
     let source = spec.source()?;
     let opts = spec.options();
-    let prepared = prepare_run(&opts)?;
+    let prepared = prepare_run(&opts, &source)?;
     let ctx = prior_context(opts.fit.seed, opts.idarb_weights.clone());
     let (views, description) = views_with_prior(&prepared, &source, &ctx, opts.labelled_views)?;
     eprintln!("scene {}, prior {description} → {}", prepared.spec.name, opts.out.display());
