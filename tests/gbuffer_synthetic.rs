@@ -84,10 +84,10 @@ fn degenerate_triangles_trace_without_nan_and_surfels_are_right() {
         assert_eq!((p.kd, p.roughness, p.metallic), (Vec3::new(0.2, 0.4, 0.6), 0.3, 0.1));
         // Helper images agree with the surfels.
         let (cov, depth, normal) = (gb.coverage_image(), gb.depth_image(), gb.normal_image());
-        for i in 0..1024 {
-            assert_eq!(cov.data[i] == 1.0, mask[i]);
-            assert_eq!(depth.data[i], gb.surfels[i].map_or(0.0, |s| s.depth));
-            assert_eq!(normal.rgb(i), gb.surfels[i].map_or(Vec3::ZERO, |s| s.normal));
+        for (i, (surfel, &m)) in gb.surfels.iter().zip(&mask).enumerate() {
+            assert_eq!(cov.data[i] == 1.0, m);
+            assert_eq!(depth.data[i], surfel.map_or(0.0, |s| s.depth));
+            assert_eq!(normal.rgb(i), surfel.map_or(Vec3::ZERO, |s| s.normal));
         }
     }
 }

@@ -225,10 +225,10 @@ fn measure_prefilter_levels_512() {
     let chain = mip_chain(&CubeMap::from_fn(512, smooth_light));
     let rough = level_roughness(chain.len());
     for (k, level) in chain.iter().enumerate() {
-        for src in k..chain.len() {
+        for src in &chain[k..] {
             let t = Instant::now();
-            let _ = prefilter_specular(&chain[src], level.res, rough[k], 0.95);
-            println!("level {k} ({}², r={:.3}) from {}²: {:.3} s", level.res, rough[k], chain[src].res, t.elapsed().as_secs_f64());
+            let _ = prefilter_specular(src, level.res, rough[k], 0.95);
+            println!("level {k} ({}², r={:.3}) from {}²: {:.3} s", level.res, rough[k], src.res, t.elapsed().as_secs_f64());
             if t.elapsed().as_secs_f64() < 0.05 {
                 break;
             }

@@ -36,13 +36,14 @@ fn smooth_light(w: usize, h: usize) -> Image {
 
 /// A mesh far away from the shading point: nothing occludes it.
 fn far_triangle() -> Mesh {
-    let mut m = Mesh::default();
-    m.positions = vec![Vec3::new(100.0, 100.0, -100.0), Vec3::new(100.1, 100.0, -100.0), Vec3::new(100.0, 100.1, -100.0)];
-    m.normals = vec![Vec3::Z; 3];
-    m.uvs = vec![Vec2::ZERO; 3];
-    m.triangles = vec![[0, 1, 2]];
-    m.triangle_part = vec![0];
-    m
+    Mesh {
+        positions: vec![Vec3::new(100.0, 100.0, -100.0), Vec3::new(100.1, 100.0, -100.0), Vec3::new(100.0, 100.1, -100.0)],
+        normals: vec![Vec3::Z; 3],
+        uvs: vec![Vec2::ZERO; 3],
+        triangles: vec![[0, 1, 2]],
+        triangle_part: vec![0],
+        ..Mesh::default()
+    }
 }
 
 fn surfel(normal: Vec3) -> Surfel {

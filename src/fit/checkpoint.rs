@@ -92,7 +92,8 @@ pub fn load(dir: &Path) -> Result<Option<Checkpoint>> {
     // The state file is one this module names (`state_file_name`): a plain name in the same folder,
     // never a path that leads elsewhere.
     let name = &progress.state_file;
-    if !(name.starts_with("state-") && name.ends_with(".safetensors") && !name.contains(['/', '\\']) && !name.contains("..")) {
+    let is_state_file = name.starts_with("state-") && name.ends_with(".safetensors") && !name.contains(['/', '\\']) && !name.contains("..");
+    if !is_state_file {
         bail!("{} names {name:?} as its tensors, which is not a checkpoint state file", progress_path.display());
     }
     let state = dir.join(name);

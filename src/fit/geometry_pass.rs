@@ -447,10 +447,14 @@ impl StageState {
     }
 }
 
+/// A successful remesh stage: the new mesh, its per-vertex colour, and the note on what was
+/// tolerated (needle triangles; empty when nothing was).
+type Remeshed = (Mesh, Vec<Vec3>, String);
+
 /// `mesh` remeshed to `target_edge` with its per-vertex colour carried over (each new vertex takes
 /// the colour interpolated at its closest point on the old surface), or `None` with the reason
 /// when the remesher's result is not a clean closed surface (the stage then keeps the old mesh).
-fn remesh_stage(mesh: &Mesh, vertex_kd: &[Vec3], target_edge: f64) -> Result<std::result::Result<(Mesh, Vec<Vec3>, String), String>> {
+fn remesh_stage(mesh: &Mesh, vertex_kd: &[Vec3], target_edge: f64) -> Result<std::result::Result<Remeshed, String>> {
     let (mut outcome, mut problems) = (None, Vec::new());
     for flips in [true, false] {
         let (p, t) = isotropic_remesh(&mesh.positions, &mesh.triangles, target_edge as f32, REMESH_ROUNDS, flips)?;
@@ -506,7 +510,8 @@ fn degenerate_triangles(mesh: &Mesh, edge: f64) -> usize {
         .filter(|&t| {
             let [a, b, c] = mesh.triangle_positions(t).map(|p| p.as_dvec3());
             let n2 = (b - a).cross(c - a).length_squared();
-            !(n2 >= min_area2)
+            // Not `n2 < min_area2`: a NaN area must count as degenerate.
+            n2.partial_cmp(&min_area2).is_none_or(|o| o.is_lt())
         })
         .count()
 }

@@ -196,7 +196,7 @@ mod tests {
     fn gradients_match_finite_differences() -> anyhow::Result<()> {
         let rows = Tensor::rand(0f64, 1.0, (4, 3), &Device::Cpu)?;
         let w = Tensor::rand(0f64, 1.0, (3, 3, 3), &Device::Cpu)?;
-        check_gradient(|x| (map().scatter(&x[0])? * &w)?.sum_all(), &[rows.clone()], 1e-6, 1e-2)?;
+        check_gradient(|x| (map().scatter(&x[0])? * &w)?.sum_all(), std::slice::from_ref(&rows), 1e-6, 1e-2)?;
         let img = Tensor::rand(0f64, 1.0, (3, 3, 3), &Device::Cpu)?;
         let w = Tensor::rand(0f64, 1.0, (4, 3), &Device::Cpu)?;
         check_gradient(|x| (map().gather(&x[0])? * &w)?.sum_all(), &[img], 1e-6, 1e-2)?;

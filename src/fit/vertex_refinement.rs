@@ -17,6 +17,7 @@
 //!   the geometry pass) and uniform Adam on u with a small step (`REFINE_STEP_PER_EDGE`), scaled
 //!   by the fit's learning-rate schedule; every step passes the geometry pass's flip/degenerate
 //!   guard (`optim::guarded_step`).
+//!
 //! No silhouette term: the pixels' coverage is fixed, the outline is the geometry pass's business.
 
 use std::collections::HashMap;
@@ -206,12 +207,14 @@ mod tests {
     #[test]
     fn seams_are_welded_and_the_mesh_round_trips() -> Result<()> {
         // A square of two triangles whose diagonal is a UV seam (its two vertices doubled).
-        let mut m = Mesh::default();
-        m.positions = vec![Vec3::ZERO, Vec3::X, Vec3::new(1.0, 1.0, 0.0), Vec3::ZERO, Vec3::new(1.0, 1.0, 0.0), Vec3::Y];
-        m.uvs = vec![Vec2::ZERO; 6];
-        m.normals = vec![Vec3::Z; 6];
-        m.triangles = vec![[0, 1, 2], [3, 4, 5]];
-        m.triangle_part = vec![0, 0];
+        let m = Mesh {
+            positions: vec![Vec3::ZERO, Vec3::X, Vec3::new(1.0, 1.0, 0.0), Vec3::ZERO, Vec3::new(1.0, 1.0, 0.0), Vec3::Y],
+            uvs: vec![Vec2::ZERO; 6],
+            normals: vec![Vec3::Z; 6],
+            triangles: vec![[0, 1, 2], [3, 4, 5]],
+            triangle_part: vec![0, 0],
+            ..Mesh::default()
+        };
         let r = VertexRefinement::new(&m)?;
         assert_eq!(r.x.len(), 4);
         assert_eq!(r.triangles.to_vec(), vec![[0, 1, 2], [0, 2, 3]]);

@@ -177,10 +177,10 @@ mod tests {
         let rgb: Vec<[f32; 3]> = (0..n).map(|i| [(i % 7) as f32 * 0.15, (i % 3) as f32 * 0.4, 1.5 - (i % 5) as f32 * 0.3]).collect();
         let alpha: Vec<f32> = (0..n).map(|i| [0.0, 1.0, 0.25, 0.0, 1.0][i % 5]).collect();
         let mut img = Vec::with_capacity(4 * n);
-        for i in 0..n {
+        for (i, c) in rgb.iter().enumerate() {
             let px = match i % 4 {
                 0 => [background.x, background.y, background.z, 0.0],
-                1 => [rgb[i][0], rgb[i][1], rgb[i][2], 1.0],
+                1 => [c[0], c[1], c[2], 1.0],
                 2 => [-0.2, 7.0e4, 0.5, 0.6],
                 _ => [0.1 * i as f32, 0.05, 2.0, 0.3],
             };

@@ -296,9 +296,7 @@ mod tests {
     fn empty_and_all_degenerate_meshes_never_hit() {
         let bvh = Bvh::build(&Mesh::default());
         assert!(bvh.closest_hit(Vec3::ZERO, Vec3::Z, 0.0, 1e9).is_none());
-        let mut mesh = Mesh::default();
-        mesh.positions = vec![Vec3::ZERO, Vec3::X, 2.0 * Vec3::X];
-        mesh.triangles = vec![[0, 1, 2], [0, 0, 0]];
+        let mesh = Mesh { positions: vec![Vec3::ZERO, Vec3::X, 2.0 * Vec3::X], triangles: vec![[0, 1, 2], [0, 0, 0]], ..Mesh::default() };
         let bvh = Bvh::build(&mesh);
         assert_eq!(bvh.primitive_count(), 0);
         assert!(!bvh.any_hit(Vec3::new(0.5, 0.0, 1.0), -Vec3::Z, 0.0, 10.0));

@@ -188,10 +188,13 @@ mod tests {
         }
         let mut rng = Pcg64::seed_from_u64(7);
         for k in 0..20_000 {
-            let mut node = CwBvhNode::default();
-            node.p = glam::Vec3::new(rng.random_range(-2.0..2.0), rng.random_range(-2.0..2.0), rng.random_range(-2.0..2.0));
-            node.e = [0u8; 3].map(|_| rng.random_range(115..130));
-            node.imask = rng.random();
+            // The rng draws happen in field order: p, e, imask.
+            let mut node = CwBvhNode {
+                p: glam::Vec3::new(rng.random_range(-2.0..2.0), rng.random_range(-2.0..2.0), rng.random_range(-2.0..2.0)),
+                e: [0u8; 3].map(|_| rng.random_range(115..130)),
+                imask: rng.random(),
+                ..CwBvhNode::default()
+            };
             for c in 0..8 {
                 node.child_meta[c] = rng.random();
                 for (lo, hi) in [(&mut node.child_min_x, &mut node.child_max_x), (&mut node.child_min_y, &mut node.child_max_y), (&mut node.child_min_z, &mut node.child_max_z)] {

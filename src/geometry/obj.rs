@@ -378,7 +378,7 @@ mod tests {
     fn ns_rule_round_trips_and_matches_the_hotdog_mtl() {
         // hotdog.mtl: Salchicha Ns 250 ↔ roughness 0.5; Plate Ns 777.602985 ↔ 0.118182.
         assert!((roughness_from_ns(250.0) - 0.5).abs() < 1e-6);
-        assert!((roughness_from_ns(777.602985) - 0.118182).abs() < 1e-5);
+        assert!((roughness_from_ns(777.602_97) - 0.118182).abs() < 1e-5);
         for r in [0.0, 0.08, 0.3, 0.9, 1.0] {
             assert!((roughness_from_ns(ns_from_roughness(r)) - r).abs() < 1e-5);
         }

@@ -189,7 +189,7 @@ impl Image {
 
     /// Average `factor`×`factor` blocks (box filter), e.g. to resolve a supersampled render.
     pub fn downsample_box(&self, factor: usize) -> Image {
-        assert!(factor >= 1 && self.width % factor == 0 && self.height % factor == 0);
+        assert!(factor >= 1 && self.width.is_multiple_of(factor) && self.height.is_multiple_of(factor));
         let (w, h, c) = (self.width / factor, self.height / factor, self.channels);
         let mut out = Image::new(w, h, c);
         let norm = 1.0 / (factor * factor) as f32;
@@ -199,8 +199,8 @@ impl Image {
                 for sy in 0..factor {
                     for sx in 0..factor {
                         let src = self.pixel(x * factor + sx, y * factor + sy);
-                        for k in 0..c {
-                            out.data[dst + k] += src[k] * norm;
+                        for (o, s) in out.data[dst..dst + c].iter_mut().zip(src) {
+                            *o += s * norm;
                         }
                     }
                 }

@@ -433,10 +433,7 @@ fn kernel_stencil(sres: usize, out_res: usize, cone_angle: f32, weight: impl Fn(
         for &t in fine {
             let p = &packed[t];
             // Weights of all lanes first (branch-free, vectorises), then keep the non-zero ones.
-            let mut w = [0.0f32; LANES];
-            for k in 0..LANES {
-                w[k] = weight(Vec3::new(p.x[k], p.y[k], p.z[k]), r, p.area[k]);
-            }
+            let w: [f32; LANES] = std::array::from_fn(|k| weight(Vec3::new(p.x[k], p.y[k], p.z[k]), r, p.area[k]));
             row.extend((0..LANES).filter(|&k| w[k] > 0.0).map(|k| (p.index[k], w[k])));
         }
         let wsum: f32 = row.iter().map(|e| e.1).sum();

@@ -61,9 +61,12 @@ mod tests {
     use crate::optim::texture::jitter_uv;
     use candle_core::{DType, Device};
 
+    /// Lookups `uv`, their jittered copies `uvj` and one weight per lookup: the regularizer's inputs.
+    type Lookups = (Arc<[[f32; 2]]>, Arc<[[f32; 2]]>, Tensor);
+
     /// `n` spread lookups, their copies jittered by σ = 0.05 (seed `seed`) and random weights in
     /// [0, 1]: the inputs of a finite-difference check.
-    fn random_lookups(n: usize, seed: u64, dev: &Device) -> Result<(Arc<[[f32; 2]]>, Arc<[[f32; 2]]>, Tensor)> {
+    fn random_lookups(n: usize, seed: u64, dev: &Device) -> Result<Lookups> {
         let uv: Vec<[f32; 2]> = (0..n).map(|i| [(i as f32 * 0.137) % 1.0, (i as f32 * 0.291) % 1.0]).collect();
         let uvj = jitter_uv(&uv, 0.05, seed);
         Ok((uv.into(), uvj, Tensor::rand(0f64, 1.0, n, dev)?))

@@ -63,8 +63,8 @@ mod tests {
     #[test]
     fn downsampling_weighs_by_the_mask() {
         // Left column masked with value 0.8, right column unmasked with value 0.1 (ignored).
-        let value = |x: usize, _| if x % 2 == 0 { 0.8 } else { 0.1 };
-        let mask = map(4, 2, 1, |x, _| if x % 2 == 0 { 1.0 } else { 0.0 });
+        let value = |x: usize, _| if x.is_multiple_of(2) { 0.8 } else { 0.1 };
+        let mask = map(4, 2, 1, |x, _| if x.is_multiple_of(2) { 1.0 } else { 0.0 });
         let labels = ViewLabels { albedo: map(4, 2, 3, value), normal: map(4, 2, 3, value), metallic: map(4, 2, 1, value), roughness: map(4, 2, 1, value), mask };
         let small = labels.downsampled(2).expect("4×2 divides by 2");
         assert_eq!((small.mask.width, small.mask.height), (2, 1));

@@ -27,7 +27,7 @@ const Y00: f64 = 0.282_094_791_773_878_1;
 const Y1: f64 = 0.488_602_511_902_919_9;
 /// Band-2 factors √(15/4π), √(5/16π), √(15/16π).
 const Y2_XY: f64 = 1.092_548_430_592_079_2;
-const Y2_ZZ: f64 = 0.315_391_565_252_520_0;
+const Y2_ZZ: f64 = 0.315_391_565_252_52;
 const Y2_XX_YY: f64 = 0.546_274_215_296_039_6;
 
 /// Rows per partial sum of the light's adjoint: a fixed chunking keeps the sum's order, and so

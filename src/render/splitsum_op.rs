@@ -442,8 +442,8 @@ impl Kernel for SplitSumShading {
             let Some(g) = g else { return };
             let kdp = [kd[3 * p].to_f64(), kd[3 * p + 1].to_f64(), kd[3 * p + 2].to_f64()];
             let ev = self.eval(g, kdp, ks[3 * p + 1].to_f64(), ks[3 * p + 2].to_f64(), &levels);
-            for c in 0..3 {
-                o[c] = T::from_f64(ev.out[c]);
+            for (o, &e) in o.iter_mut().zip(&ev.out) {
+                *o = T::from_f64(e);
             }
         });
         Ok(())

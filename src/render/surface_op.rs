@@ -145,12 +145,10 @@ impl Kernel for SurfacePoints {
             .collect();
         let [g_pos, g_nrm, g_attr] = grads else { unreachable!("three inputs") };
         for (h, g_p, g_m, g_a) in &per_pixel {
-            for c in 0..3 {
-                let i = h.corners[c];
-                let b = h.bary[c];
+            for ((&i, &b), g_pc) in h.corners.iter().zip(&h.bary).zip(g_p) {
                 if let Some(gp) = g_pos.as_deref_mut() {
                     for a in 0..3 {
-                        gp[3 * i + a] += T::from_f64(g_p[c][a]);
+                        gp[3 * i + a] += T::from_f64(g_pc[a]);
                     }
                 }
                 if let Some(gn) = g_nrm.as_deref_mut() {
@@ -180,8 +178,11 @@ mod tests {
     use crate::optim::gradcheck::check_gradient;
     use candle_core::Device;
 
+    /// A test mesh: flat positions, normals and attributes (per vertex), and its triangles.
+    type TestMesh = (Vec<f64>, Vec<f64>, Vec<f64>, Arc<[[u32; 3]]>);
+
     /// Two triangles of a bent quad and rays through both, seen from +z.
-    fn quad() -> (Vec<f64>, Vec<f64>, Vec<f64>, Arc<[[u32; 3]]>) {
+    fn quad() -> TestMesh {
         let positions = vec![-1.0, -1.0, 0.1, 1.0, -1.0, -0.2, 1.0, 1.0, 0.3, -1.0, 1.0, 0.0];
         let normals = vec![0.1, 0.0, 1.0, 0.0, 0.2, 1.0, -0.3, 0.1, 1.0, 0.0, 0.0, 1.0];
         let attrs = vec![0.2, 0.9, 0.4, 0.1, 0.7, 0.5, 0.3, 0.3];

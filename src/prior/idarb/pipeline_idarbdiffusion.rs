@@ -57,6 +57,8 @@ impl IdarbPipeline {
 
     /// DDIM sampling from `init_noise` [3N, 4, h, w]. `step_noise(k)` supplies z for step k when
     /// η > 0; `observe` sees every step.
+    // Mirrors the reference signature: the inputs of `IDArbDiffusionPipeline.__call__`'s denoising loop (image, pose, latents, eta, generator, callback) plus its scheduler.
+    #[allow(clippy::too_many_arguments)]
     pub fn denoise(
         &self,
         image_latents: &Tensor,

@@ -139,7 +139,7 @@ pub fn prepare_view(rgba: &Image, target: usize) -> Result<PreparedView> {
     if rgba.channels != 4 {
         bail!("IDArb input must be RGBA (4 channels), got {} channels", rgba.channels);
     }
-    if rgba.width == 0 || rgba.height == 0 || target == 0 || target % 8 != 0 {
+    if rgba.width == 0 || rgba.height == 0 || target == 0 || !target.is_multiple_of(8) {
         bail!("IDArb input {}×{} or target {target} invalid (target must be a positive multiple of 8)", rgba.width, rgba.height);
     }
     let framing = Framing::new(rgba.width, rgba.height, target);

@@ -238,21 +238,21 @@ pub fn unet_forward_flops(c: &UNetDR2DConfig, rows: usize, h: usize, w: usize, n
     let (mut hh, mut ww) = (h, w);
     let mut skip_ch = vec![ch[0]];
     let mut prev = ch[0];
-    for i in 0..nb {
+    for (i, &o) in ch.iter().enumerate() {
         for j in 0..c.layers_per_block {
-            let cin = if j == 0 { prev } else { ch[i] };
-            flops += conv(cin, ch[i], 3, hh * ww) + conv(ch[i], ch[i], 3, hh * ww);
+            let cin = if j == 0 { prev } else { o };
+            flops += conv(cin, o, 3, hh * ww) + conv(o, o, 3, hh * ww);
             if c.down_has_attention[i] {
-                flops += transformer(ch[i], hh * ww);
+                flops += transformer(o, hh * ww);
             }
-            skip_ch.push(ch[i]);
+            skip_ch.push(o);
         }
-        prev = ch[i];
+        prev = o;
         if i + 1 < nb {
             hh = hh.div_ceil(2);
             ww = ww.div_ceil(2);
-            flops += conv(ch[i], ch[i], 3, hh * ww);
-            skip_ch.push(ch[i]);
+            flops += conv(o, o, 3, hh * ww);
+            skip_ch.push(o);
         }
     }
     flops += 2.0 * conv(prev, prev, 3, hh * ww) * 2.0 + transformer(prev, hh * ww);
