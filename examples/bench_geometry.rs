@@ -14,7 +14,7 @@ use anyhow::Result;
 use clap::Parser;
 use reconstruct::fit::geometry_pass::GeometryPassConfig;
 use reconstruct::geometry::bvh::Bvh;
-use reconstruct::jobs::geometry::{obtain_geometry, score_geometry, scores_summary, GeometrySource};
+use reconstruct::jobs::geometry::{obtain_geometry, score_geometry, scores_summary, GeometrySource, PassLabels};
 use reconstruct::jobs::reconstruct::prior_context;
 use reconstruct::prior::source::{make_prior, PriorSource};
 use reconstruct::scene::spec::shared_dir;
@@ -104,13 +104,10 @@ fn main() -> Result<()> {
     }
     let t = Instant::now();
     let source: PriorSource = args.prior.parse()?;
-    let labels = if source == PriorSource::None {
-        None
-    } else {
-        let prior = make_prior(&source, &prior_context(0, None))?;
-        Some(prior.labels(&dataset, &(0..dataset.train.len()).collect::<Vec<_>>())?)
-    };
-    let outcome = obtain_geometry(&spec, &dataset, GeometrySource::Reconstruct, &pass, labels.as_deref(), !args.json)?;
+    let prior = make_prior(&source, &prior_context(0, None))?;
+    let labels = PassLabels { prior: prior.as_ref(), views: (0..dataset.train.len()).collect() };
+    let labels = (source != PriorSource::None).then_some(&labels);
+    let outcome = obtain_geometry(&spec, &dataset, GeometrySource::Reconstruct, &pass, labels, !args.json)?;
     let total = t.elapsed().as_secs_f64();
     let bvh = Bvh::build(&outcome.mesh);
     let scores = score_geometry(&spec, &dataset, &outcome.mesh, &bvh, outcome.hull.as_ref());
