@@ -340,3 +340,35 @@ pub fn scores_summary(s: &GeometryScores) -> String {
     }
     out
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::prior::oracle::camera_normals;
+    use crate::scene::Camera;
+
+    /// The pass's normal label is the world normal the label encodes in camera space, with the
+    /// label's mask; a pixel without a normal gets no weight, and a label of another size is
+    /// refused.
+    #[test]
+    fn a_normal_label_reads_back_as_the_world_normal_it_encodes() -> Result<()> {
+        let camera = Camera::look_at(Vec3::new(2.0, -3.0, 1.5), Vec3::ZERO, Vec3::Z, 0.8, 3, 2);
+        let world = [Vec3::X, Vec3::new(0.3, -0.8, 0.5).normalize(), Vec3::ZERO, -Vec3::Z, Vec3::new(-0.6, 0.0, 0.8), Vec3::Y];
+        let mut normals = Image::new(3, 2, 3);
+        for (i, n) in world.iter().enumerate() {
+            normals.set_rgb(i, *n);
+        }
+        let mask = Image { data: vec![1.0, 0.5, 1.0, 1.0, 0.0, 1.0], ..Image::new(3, 2, 1) };
+        let labels = ViewLabels { albedo: Image::new(3, 2, 3), normal: camera_normals(&normals, camera.c2w), metallic: Image::new(3, 2, 1), roughness: Image::new(3, 2, 1), mask: mask.clone() };
+        let label = normal_label(&labels, 3, 2, camera.c2w)?;
+        for (i, n) in world.iter().enumerate() {
+            let px = &label.data[4 * i..4 * i + 4];
+            assert!(Vec3::from_slice(&px[..3]).distance(*n) < 1e-5, "pixel {i}: {px:?} for {n}");
+            let weight = if *n == Vec3::ZERO { 0.0 } else { mask.data[i] };
+            assert_eq!(px[3], weight, "pixel {i}");
+        }
+        let err = normal_label(&labels, 4, 2, camera.c2w).expect_err("another size").to_string();
+        assert!(err.contains("normal 3×2×3") && err.contains("4×2 view"), "{err}");
+        Ok(())
+    }
+}
