@@ -5,9 +5,8 @@ use std::path::PathBuf;
 use anyhow::Result;
 use clap::{Parser, Subcommand, ValueEnum};
 use reconstruct::fit::config::FitConfig;
-use reconstruct::jobs::overrides::SettingOverrides;
+use reconstruct::jobs::overrides::{GeometryPassOverrides, SettingOverrides};
 use reconstruct::jobs::run_folder::default_run_folder;
-use reconstruct::fit::geometry_pass::GeometryPassConfig;
 use reconstruct::jobs::ablation;
 use reconstruct::prior::source::PriorSource;
 use reconstruct::jobs::reconstruct::{run as run_job, GeometrySource, ReconstructOptions};
@@ -138,9 +137,8 @@ enum Command {
         /// uses, and once without for the `none` row; known: one mesh for all rows).
         #[arg(long, value_enum, default_value = "reconstruct")]
         geometry: Geometry,
-        /// Iterations of the geometry pass.
-        #[arg(long)]
-        geometry_iterations: Option<usize>,
+        #[command(flatten)]
+        geometry_pass: GeometryPassOverrides,
         /// Shading during optimisation.
         #[arg(long, value_enum, default_value = "auto")]
         mode: TrainMode,
@@ -308,12 +306,11 @@ fn main() -> Result<()> {
     let cli = Cli::parse();
     let Some(command) = cli.command else { return reconstruct(cli.reconstruct) };
     match command {
-        Command::Ablation { scene, iterations, geometry, geometry_iterations, mode, spp, sweep, eval_spp, out, refine_geometry, normal_map, plan } => {
+        Command::Ablation { scene, iterations, geometry, geometry_pass, mode, spp, sweep, eval_spp, out, refine_geometry, normal_map, plan } => {
             let out = out.unwrap_or_else(|| ablation::default_out(&scene));
             let fixed_mode = mode.fixed();
             let fit = FitConfig { mode: fixed_mode.unwrap_or(ShadingMode::SplitSum), iterations, spp, refine_geometry, normal_map, ..FitConfig::default() };
-            let mut geometry_pass = GeometryPassConfig::default();
-            if let Some(v) = geometry_iterations { geometry_pass.iterations = v; }
+            let geometry_pass = geometry_pass.geometry_pass();
             let base = ReconstructOptions { auto_mode: fixed_mode.is_none(), geometry: geometry.source(), geometry_pass, ..ReconstructOptions::new(&scene, fit, eval_spp, out.clone()) };
             let sources = ablation::default_sources();
             let opts = ablation::AblationOptions { base, sources, sweep };

@@ -54,13 +54,8 @@ pub struct SettingOverrides {
     /// Iterations between checkpoints (0 = only at the end; bookkeeping: not part of the run identity).
     #[arg(long)]
     pub checkpoint_every: Option<usize>,
-    /// Iterations of the geometry pass (when the geometry is reconstructed).
-    #[arg(long)]
-    pub geometry_iterations: Option<usize>,
-    /// Weight of the geometry pass's normal prior: the shading normals held to the prior's normal
-    /// labels while the mesh is reconstructed (only with a prior; 0 turns it off; docs/geometry.md).
-    #[arg(long)]
-    pub geometry_normal_prior: Option<f64>,
+    #[command(flatten)]
+    pub geometry: GeometryPassOverrides,
     /// Move the vertices in the material pass too, through the shading normal (Monte Carlo
     /// training only; docs/geometry.md).
     #[arg(long)]
@@ -98,8 +93,26 @@ impl SettingOverrides {
         fit
     }
 
-    /// The geometry pass settings: the defaults, `--geometry-iterations` and
-    /// `--geometry-normal-prior`.
+    /// The geometry pass settings.
+    pub fn geometry_pass(&self) -> GeometryPassConfig {
+        self.geometry.geometry_pass()
+    }
+}
+
+/// The geometry pass's settings on the command line (a run's and the ablation's).
+#[derive(clap::Args, Clone, Debug, Default)]
+pub struct GeometryPassOverrides {
+    /// Iterations of the geometry pass (when the geometry is reconstructed).
+    #[arg(long)]
+    pub geometry_iterations: Option<usize>,
+    /// Weight of the geometry pass's normal prior: the shading normals held to the prior's normal
+    /// labels while the mesh is reconstructed (only with a prior; 0 turns it off; docs/geometry.md).
+    #[arg(long)]
+    pub geometry_normal_prior: Option<f64>,
+}
+
+impl GeometryPassOverrides {
+    /// The defaults, then `--geometry-iterations` and `--geometry-normal-prior`.
     pub fn geometry_pass(&self) -> GeometryPassConfig {
         let mut pass = GeometryPassConfig::default();
         if let Some(v) = self.geometry_iterations { pass.iterations = v; }
@@ -119,8 +132,9 @@ mod tests {
         assert_eq!((fit.prior.albedo, fit.prior.roughness, fit.prior.metallic, fit.iterations, fit.mode), (0.5, 2.0, 2.0, 7, ShadingMode::MonteCarlo));
         assert_eq!(FitConfig { prior: fit.prior, iterations: 7, mode: ShadingMode::MonteCarlo, ..FitConfig::default() }, fit);
         assert_eq!(SettingOverrides::default().fit_config(None), FitConfig::default());
-        assert_eq!(SettingOverrides { geometry_iterations: Some(3), ..Default::default() }.geometry_pass().iterations, 3);
-        let pass = SettingOverrides { geometry_normal_prior: Some(0.0), ..Default::default() }.geometry_pass();
+        let geometry = |g: GeometryPassOverrides| SettingOverrides { geometry: g, ..Default::default() }.geometry_pass();
+        assert_eq!(geometry(GeometryPassOverrides { geometry_iterations: Some(3), ..Default::default() }).iterations, 3);
+        let pass = geometry(GeometryPassOverrides { geometry_normal_prior: Some(0.0), ..Default::default() });
         assert_eq!(GeometryPassConfig { normal_prior: 0.0, ..GeometryPassConfig::default() }, pass);
     }
 }
