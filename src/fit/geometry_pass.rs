@@ -217,14 +217,9 @@ struct ViewTarget {
     /// Linear RGB and alpha, row-major.
     rgb: Arc<[[f32; 3]]>,
     alpha: Arc<[f32]>,
-    normal: Option<NormalLabel>,
-}
-
-/// A view's normal label at the view's size: the world-space unit normal (renormalised after any
-/// resampling) and each pixel's weight (its mask).
-struct NormalLabel {
-    normal: Arc<[[f32; 3]]>,
-    weight: Arc<[f32]>,
+    /// The normal label at the view's size, [H, W, 4]: the world-space unit normal (renormalised
+    /// after any resampling) and each pixel's weight (its mask).
+    normal: Option<Tensor>,
 }
 
 fn to_vec3(v: &[f64; 3]) -> Vec3 {
@@ -308,9 +303,8 @@ fn view_loss_term(view: &ViewTarget, step: &StepInputs, background: Vec3) -> Res
         let normal = sp.narrow(D::Minus1, 0, 3)?;
         let kd_px = sp.narrow(D::Minus1, 3, 3)?;
         if let (Some(label), true) = (&view.normal, step.normal_prior > 0.0) {
-            let dev = &Device::Cpu;
-            let labels = Tensor::from_vec(map.pixels.iter().flat_map(|&p| label.normal[p as usize]).collect::<Vec<f32>>(), (n, 1, 3), dev)?;
-            let mask = Tensor::from_vec(map.pixels.iter().map(|&p| label.weight[p as usize]).collect::<Vec<f32>>(), (n, 1, 1), dev)?;
+            let rows = map.gather(label)?;
+            let (labels, mask) = (rows.narrow(D::Minus1, 0, 3)?.reshape((n, 1, 3))?, rows.narrow(D::Minus1, 3, 1)?.reshape((n, 1, 1))?);
             prior = Some(prior_loss(&normal.reshape((n, 1, 3))?, &labels, &mask, step.normal_prior)?);
         }
         shade_diffuse(&kd_px, &normal, step.light)?
@@ -375,23 +369,35 @@ fn view_targets(views: &[GeometryView], scale: f64) -> Result<Vec<ViewTarget>> {
     views
         .iter()
         .map(|v| {
-            let (camera, target) = if scale < 1.0 {
+            let camera = if scale < 1.0 {
                 let c = &v.camera;
                 let w = ((c.width as f64 * scale).round() as usize).max(1);
                 // The height from the width's ratio, so that the pixels stay square (the camera's
                 // focal length follows its width).
                 let h = ((c.height * w) as f64 / c.width as f64).round().max(1.0) as usize;
-                (c.resized(w, h), v.target.resized_straight_alpha(w, h).with_context(|| format!("geometry pass: view {}", v.name))?)
+                c.resized(w, h)
             } else {
-                (v.camera.clone(), v.target.clone())
+                v.camera.clone()
             };
+            // An RGBA picture of the view (target or label) at the camera's size.
+            let at_size = |image: &Image| -> Result<Image> {
+                if image.width == camera.width && image.height == camera.height {
+                    Ok(image.clone())
+                } else {
+                    image.resized_straight_alpha(camera.width, camera.height).with_context(|| format!("geometry pass: view {}", v.name))
+                }
+            };
+            let target = at_size(&v.target)?;
             let rgb = target.data.chunks_exact(4).map(|p| [p[0], p[1], p[2]]).collect();
             let alpha = target.data.chunks_exact(4).map(|p| p[3]).collect();
             let normal = match &v.normal {
-                Some(a) => {
-                    let a = if a.width == camera.width && a.height == camera.height { a.clone() } else { a.resized_straight_alpha(camera.width, camera.height)? };
-                    let normal = a.data.chunks_exact(4).map(|p| Vec3::new(p[0], p[1], p[2]).normalize_or_zero().to_array()).collect();
-                    Some(NormalLabel { normal, weight: a.data.chunks_exact(4).map(|p| p[3]).collect() })
+                Some(label) => {
+                    let label = at_size(label)?;
+                    let rows: Vec<f32> = label.data.chunks_exact(4).flat_map(|p| {
+                        let n = Vec3::new(p[0], p[1], p[2]).normalize_or_zero();
+                        [n.x, n.y, n.z, p[3]]
+                    }).collect();
+                    Some(Tensor::from_vec(rows, (camera.height, camera.width, 4), &Device::Cpu)?)
                 }
                 None => None,
             };
