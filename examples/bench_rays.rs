@@ -4,9 +4,10 @@
 //!
 //! Coherent rays: 512² camera rays for 8 views (closest hit). Incoherent rays: from G-buffer hit
 //! points (offset along the normal) in uniformly random directions, like shadow / bounce rays
-//! (closest hit and any hit). Compares obvhs build presets for the CWBVH `Bvh` uses, its node
-//! tests (AVX-512 and AVX2 8-wide where the CPU has them, `Bvh`'s default being the widest, against
-//! obvhs' own SSE test), and obvhs' binary BVH2 with its own traversal as the alternative structure. All rayon-parallel.
+//! (closest hit and any hit). Compares obvhs build presets for both of `Bvh`'s layouts: the float
+//! 8-wide tree (the default; AVX2 and scalar node tests) and obvhs' CWBVH (node tests AVX-512 and
+//! AVX2 8-wide where the CPU has them, and obvhs' own SSE test), and obvhs' binary BVH2 with its
+//! own traversal. The first table is rayon-parallel wall clock, the second one thread's CPU time.
 //! With `--features tinybvh`, tinybvh's layouts on the same rays, one thread, taking turns with
 //! ours (`tinybvh`); for its 8-wide BVH8_CPU layout build with
 //! `RUSTFLAGS="-C target-feature=+avx2,+fma"`. With `--features embree` (needs Debian
@@ -24,7 +25,7 @@ use obvhs::BvhBuildParams;
 use rand::{Rng, SeedableRng};
 use rand_pcg::Pcg64;
 use rayon::prelude::*;
-use reconstruct::geometry::bvh::Bvh;
+use reconstruct::geometry::bvh::{Bvh, Layout};
 use reconstruct::geometry::bvh_wide::NodeTest;
 use reconstruct::geometry::ground_truth::load_ground_truth;
 use reconstruct::geometry::Mesh;
@@ -72,18 +73,31 @@ fn thread_cpu_ns() -> Option<u64> {
 
 /// Passes over the rays per query in [`cpu_rates`]; the best pass counts.
 const ROUNDS: usize = 7;
+/// Each timed pass traces the rays as many times as this many CPU seconds take: the VM's
+/// thread clock advances in 4 ms ticks, which made a single trip over 161k rays (≈ 50 ms) step
+/// by 8 %.
+const PASS_SECONDS: f64 = 0.25;
 
 /// Single-thread rays per CPU second of each query `f(q, ..)`, q < `queries`, over `rays` (best of [`ROUNDS`] passes). The
 /// queries take turns within each round, so load that drifts during the run affects all alike and
 /// their ratios are measured side by side.
 fn cpu_rates(rays: &[(Vec3, Vec3)], queries: usize, f: &dyn Fn(usize, Vec3, Vec3) -> bool) -> Vec<Option<f64>> {
     let mut best: Vec<Option<f64>> = vec![None; queries];
+    // Trips over the rays per pass, from one untimed trip of each query.
+    let mut trips = vec![1usize; queries];
+    for (q, trip) in trips.iter_mut().enumerate() {
+        let t = Instant::now();
+        std::hint::black_box(rays.iter().filter(|(o, d)| f(q, *o, *d)).count());
+        *trip = (PASS_SECONDS / t.elapsed().as_secs_f64().max(1e-6)).ceil().clamp(1.0, 1000.0) as usize;
+    }
     for _ in 0..ROUNDS {
         for q in 0..queries {
             let Some(t0) = thread_cpu_ns() else { return best };
-            std::hint::black_box(rays.iter().filter(|(o, d)| f(q, *o, *d)).count());
+            for _ in 0..trips[q] {
+                std::hint::black_box(rays.iter().filter(|(o, d)| f(q, *o, *d)).count());
+            }
             let Some(t1) = thread_cpu_ns() else { return best };
-            let rate = rays.len() as f64 / ((t1 - t0).max(1) as f64 * 1e-9) / 1e6;
+            let rate = (trips[q] * rays.len()) as f64 / ((t1 - t0).max(1) as f64 * 1e-9) / 1e6;
             best[q] = Some(best[q].map_or(rate, |b: f64| b.max(rate)));
         }
     }
@@ -130,13 +144,18 @@ fn main() -> Result<()> {
     let coherent_subset = &primary[..2 * 512 * 512];
     let mut cpu_rows = Vec::new();
 
-    for (name, params) in [
+    let presets = [
         ("fast", BvhBuildParams::fast_build()),
         ("medium", BvhBuildParams::medium_build()),
         ("slow (spatial splits)", BvhBuildParams::slow_build()),
-    ] {
+        // Leaves of at most one block of four triangles, and leaves collapsed less eagerly.
+        ("medium, leaves ≤ 4", BvhBuildParams { max_prims_per_leaf: 4, ..BvhBuildParams::medium_build() }),
+        ("medium, leaf cost 1", BvhBuildParams { collapse_traversal_cost: 1.0, ..BvhBuildParams::medium_build() }),
+    ];
+    let layouts = [(Layout::Float8, "float 8-wide (Bvh)"), (Layout::Cwbvh, "CWBVH")];
+    for ((name, params), (layout, structure)) in presets.into_iter().flat_map(|p| layouts.map(|l| (p, l))) {
         let t = Instant::now();
-        let bvh = Bvh::build_with(&mesh, params);
+        let bvh = Bvh::build_layout(&mesh, params, layout);
         let build = t.elapsed();
         // Warm-up and hit counting.
         let hits = primary.par_iter().filter(|(o, d)| bvh.closest_hit(*o, *d, 0.0, f32::INFINITY).is_some()).count();
@@ -154,23 +173,32 @@ fn main() -> Result<()> {
         let inc = best_of(&|| secondary.par_iter().filter(|(o, d)| bvh.closest_hit(*o, *d, 0.0, f32::INFINITY).is_some()).count());
         let any = best_of(&|| secondary.par_iter().filter(|(o, d)| bvh.any_hit(*o, *d, 0.0, f32::INFINITY)).count());
         println!(
-            "| CWBVH (Bvh) | {name} | {:.0} | {:.2} | {:.2} | {:.2} | {:.3} |",
+            "| {structure} | {name} | {:.0} | {:.2} | {:.2} | {:.2} | {:.3} |",
             build.as_secs_f64() * 1e3,
             mrays(primary.len(), coh),
             mrays(secondary.len(), inc),
             mrays(secondary.len(), any),
             hits as f64 / primary.len() as f64
         );
-        // Every node test the CPU has, on the same BVH, taking turns (`cpu_rates`).
-        let tests: Vec<NodeTest> = [NodeTest::Avx512, NodeTest::Avx2, NodeTest::Obvhs].into_iter().filter(|t| t.supported()).collect();
+        // Every node test the CPU has, on the same BVH, taking turns (`cpu_rates`). The float
+        // layout has an AVX2 test and a scalar one (which `NodeTest::Obvhs` selects).
+        let candidates = match layout {
+            Layout::Cwbvh => vec![NodeTest::Avx512, NodeTest::Avx2, NodeTest::Obvhs],
+            Layout::Float8 => vec![NodeTest::Avx2, NodeTest::Obvhs],
+        };
+        let tests: Vec<NodeTest> = candidates.into_iter().filter(|t| t.supported()).collect();
         let coherent = cpu_rates(coherent_subset, tests.len(), &|k, o, d| bvh.closest_hit_using(tests[k], o, d, 0.0, f32::INFINITY).is_some());
         let incoherent = cpu_rates(&secondary, tests.len(), &|k, o, d| bvh.closest_hit_using(tests[k], o, d, 0.0, f32::INFINITY).is_some());
         let occlusion = cpu_rates(&secondary, tests.len(), &|k, o, d| bvh.any_hit_using(tests[k], o, d, 0.0, f32::INFINITY));
         for (k, test) in tests.iter().enumerate() {
             cpu_rows.push(format!(
-                "| CWBVH (Bvh), {} node test{} | {name} | {} | {} | {} |",
-                test.name(),
-                if *test == bvh.node_test() { " (default)" } else { "" },
+                "| {structure}, {} node test{} | {name} | {} | {} | {} |",
+                match (layout, test) {
+                    (Layout::Float8, NodeTest::Obvhs) => "scalar",
+                    (Layout::Float8, _) => "AVX2 8-wide",
+                    _ => test.name(),
+                },
+                if layout == Layout::Float8 && *test == bvh.node_test() { " (default)" } else { "" },
                 fmt_rate(coherent[k]),
                 fmt_rate(incoherent[k]),
                 fmt_rate(occlusion[k]),

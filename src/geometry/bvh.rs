@@ -1,14 +1,19 @@
-//! Ray queries against a mesh through an obvhs compressed wide BVH (CWBVH, 8-wide, SIMD node tests).
+//! Ray queries against a mesh through an 8-wide BVH built by obvhs.
 //!
-//! obvhs reports leaf primitives as indices into its own `primitive_indices`; we store the
-//! triangles already permuted into that order (so the hot loop reads memory linearly) together
-//! with their index in the mesh's triangle list, which is what [`Hit::triangle`] returns.
+//! Two layouts of the same kind of tree ([`Layout`]):
+//! - **`Float8`, the default**: obvhs' binary BVH collapsed to 8-wide nodes of float boxes, leaves
+//!   of triangles tested four at a time ([`super::bvh8`]). On the hotdog it traces incoherent rays
+//!   about twice as fast as the compressed layout (docs/performance.md, *A float layout*).
+//! - **`Cwbvh`**: obvhs' compressed wide BVH and its traversal, with an AVX2 (or AVX-512) node
+//!   test where the CPU has it ([`super::bvh_wide`]) or obvhs' SSE test. It stays as the
+//!   reference the tests hold the default to, and for meshes too large for the float layout's
+//!   leaf references.
 //!
-//! Node tests: the traversal tests a node's 8 children in one pass with AVX2 where the CPU has it
-//! ([`super::bvh_wide`], picked at build time); elsewhere it uses obvhs' SSE test. An AVX-512 test
-//! exists too (measured slower, not the default).
-//! All give the same hit masks, so the hits are identical; `closest_hit_using` / `any_hit_using`
-//! pick a test explicitly (benchmarks, and the tests comparing them).
+//! obvhs reports leaf primitives as indices into its own `primitive_indices`; both layouts store
+//! the triangles already permuted into leaf order (so the hot loop reads memory linearly)
+//! together with their index in the mesh's triangle list, which is what [`Hit::triangle`] returns.
+//! `closest_hit_using` / `any_hit_using` pick a node test explicitly (benchmarks, and the tests
+//! comparing them); on the float layout `NodeTest::Obvhs` selects its scalar node test.
 
 use std::time::Duration;
 
@@ -20,6 +25,7 @@ use obvhs::ray::Ray;
 use obvhs::triangle::Triangle;
 use obvhs::BvhBuildParams;
 
+use super::bvh8::{self, Bvh8, PreparedRay, NO_TRIANGLE};
 use super::bvh_wide::{self, NodeTest};
 use super::Mesh;
 
@@ -93,25 +99,40 @@ fn positive_zeros(dir: Vec3) -> Vec3A {
 /// A BVH over a mesh's triangles. Degenerate (zero-area or non-finite) triangles are left out:
 /// a ray can never hit them, and leaving them out keeps NaN bounds away from the builder.
 pub struct Bvh {
-    cwbvh: Option<CwBvh>,
-    /// Triangles in obvhs' primitive order.
-    triangles: Vec<PackedTriangle>,
-    /// Mesh triangle index of each entry of `triangles`.
+    tree: Option<Tree>,
+    /// Mesh triangle index of each leaf slot: each entry of the CWBVH's triangle list, or each
+    /// block lane of the float layout ([`NO_TRIANGLE`] where a lane is unused).
     triangle_ids: Vec<u32>,
     /// The node test queries use ([`NodeTest::detect`] at build time).
     node_test: NodeTest,
 }
 
+/// How the tree's nodes are stored and traversed.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Layout {
+    /// obvhs' compressed wide BVH and its traversal, with the node tests of [`NodeTest`].
+    Cwbvh,
+    /// [`Bvh8`]: obvhs' binary tree collapsed to 8-wide nodes of float boxes, nearest child first.
+    Float8,
+}
+
+enum Tree {
+    /// The compressed tree and its triangles in obvhs' primitive order.
+    Cwbvh { cwbvh: CwBvh, triangles: Vec<PackedTriangle> },
+    /// The float tree, which holds its triangles in its leaves' blocks.
+    Float8(Bvh8),
+}
+
 /// Closest-hit traversal with the node test `$test(node, &ray, oct_inv4)`: (primitive slot, t, b1, b2).
 macro_rules! closest_traversal {
-    ($self:expr, $bvh:expr, $o:expr, $d:expr, $tmin:expr, $tmax:expr, $test:path) => {{
+    ($tris:expr, $bvh:expr, $o:expr, $d:expr, $tmin:expr, $tmax:expr, $test:path) => {{
         let mut ray = Ray::new($o, $d, $tmin, $tmax);
         let mut best: Option<(u32, f32, f32, f32)> = None;
         let mut state = $bvh.new_traversal(ray.direction);
         let mut node;
         obvhs::traverse!($bvh, node, state, $test(node, &ray, state.oct_inv4), {
             let k = state.primitive_id as usize;
-            if let Some((t, b1, b2)) = intersect_packed(&$self.triangles[k], $o, $d, $tmin, ray.tmax) {
+            if let Some((t, b1, b2)) = intersect_packed(&$tris[k], $o, $d, $tmin, ray.tmax) {
                 best = Some((k as u32, t, b1, b2));
                 ray.tmax = t; // shrink so farther boxes and triangles are culled
             }
@@ -122,7 +143,7 @@ macro_rules! closest_traversal {
 
 /// Any-hit traversal with the node test `$test`: stops at the first hit on the segment.
 macro_rules! any_traversal {
-    ($self:expr, $bvh:expr, $o:expr, $d:expr, $tmin:expr, $tmax:expr, $test:path) => {{
+    ($tris:expr, $bvh:expr, $o:expr, $d:expr, $tmin:expr, $tmax:expr, $test:path) => {{
         let ray = Ray::new($o, $d, $tmin, $tmax);
         let mut state = $bvh.new_traversal(ray.direction);
         let mut node;
@@ -130,7 +151,7 @@ macro_rules! any_traversal {
         // only leave that loop; break out of the labelled block to stop the whole traversal.
         'traversal: {
             obvhs::traverse!($bvh, node, state, $test(node, &ray, state.oct_inv4), {
-                if intersect_packed(&$self.triangles[state.primitive_id as usize], $o, $d, $tmin, $tmax).is_some() {
+                if intersect_packed(&$tris[state.primitive_id as usize], $o, $d, $tmin, $tmax).is_some() {
                     break 'traversal true;
                 }
             });
@@ -140,13 +161,18 @@ macro_rules! any_traversal {
 }
 
 impl Bvh {
-    /// Build with obvhs' "medium" preset (PLOC + reinsertion, no spatial splits); see
-    /// examples/bench_rays.rs for the preset comparison on the hotdog.
+    /// Build the float layout with obvhs' "medium" preset (PLOC + reinsertion, no spatial splits);
+    /// see examples/bench_rays.rs for the preset and layout comparison on the hotdog.
     pub fn build(mesh: &Mesh) -> Bvh {
         Bvh::build_with(mesh, BvhBuildParams::medium_build())
     }
 
     pub fn build_with(mesh: &Mesh, params: BvhBuildParams) -> Bvh {
+        Bvh::build_layout(mesh, params, Layout::Float8)
+    }
+
+    /// Build with the given preset and node layout.
+    pub fn build_layout(mesh: &Mesh, params: BvhBuildParams, layout: Layout) -> Bvh {
         let mut tris = Vec::with_capacity(mesh.triangles.len());
         let mut ids = Vec::with_capacity(mesh.triangles.len());
         for t in 0..mesh.triangles.len() {
@@ -157,20 +183,40 @@ impl Bvh {
                 ids.push(t as u32);
             }
         }
+        // A leaf reference of the float layout holds triangle indices below `bvh8::MAX_TRIANGLES`
+        // (134 million); a larger mesh takes the compressed layout.
+        let layout = if tris.len() >= bvh8::MAX_TRIANGLES { Layout::Cwbvh } else { layout };
         if tris.is_empty() {
-            return Bvh { cwbvh: None, triangles: Vec::new(), triangle_ids: Vec::new(), node_test: NodeTest::Obvhs };
+            return Bvh { tree: None, triangle_ids: Vec::new(), node_test: NodeTest::Obvhs };
         }
-        let cwbvh = build_cwbvh_from_tris(&tris, params, &mut Duration::default());
-        let triangles = cwbvh
-            .primitive_indices
-            .iter()
-            .map(|&i| {
-                let t = &tris[i as usize];
-                PackedTriangle { v0: t.v0.into(), e1: (t.v1 - t.v0).into(), e2: (t.v2 - t.v0).into() }
-            })
-            .collect();
-        let triangle_ids = cwbvh.primitive_indices.iter().map(|&i| ids[i as usize]).collect();
-        Bvh { cwbvh: Some(cwbvh), triangles, triangle_ids, node_test: NodeTest::detect() }
+        match layout {
+            Layout::Cwbvh => {
+                let cwbvh = build_cwbvh_from_tris(&tris, params, &mut Duration::default());
+                let triangles = cwbvh
+                    .primitive_indices
+                    .iter()
+                    .map(|&i| {
+                        let t = &tris[i as usize];
+                        PackedTriangle { v0: t.v0.into(), e1: (t.v1 - t.v0).into(), e2: (t.v2 - t.v0).into() }
+                    })
+                    .collect();
+                let triangle_ids = cwbvh.primitive_indices.iter().map(|&i| ids[i as usize]).collect();
+                Bvh { tree: Some(Tree::Cwbvh { cwbvh, triangles }), triangle_ids, node_test: NodeTest::detect() }
+            }
+            Layout::Float8 => {
+                let bvh8 = Bvh8::build(&tris, params);
+                let triangle_ids = bvh8.lane_triangles().iter().map(|&i| if i == NO_TRIANGLE { NO_TRIANGLE } else { ids[i as usize] }).collect();
+                Bvh { tree: Some(Tree::Float8(bvh8)), triangle_ids, node_test: NodeTest::detect() }
+            }
+        }
+    }
+
+    /// The node layout queries traverse (`None` for an empty tree).
+    pub fn layout(&self) -> Option<Layout> {
+        match self.tree.as_ref()? {
+            Tree::Cwbvh { .. } => Some(Layout::Cwbvh),
+            Tree::Float8(_) => Some(Layout::Float8),
+        }
     }
 
     /// The node test queries use.
@@ -185,7 +231,7 @@ impl Bvh {
 
     /// Number of (non-degenerate) triangles referenced by the leaves.
     pub fn primitive_count(&self) -> usize {
-        self.triangles.len()
+        self.triangle_ids.iter().filter(|&&id| id != NO_TRIANGLE).count()
     }
 
     /// The nearest hit with t in [tmin, tmax] along `origin + t·dir` (dir need not be unit).
@@ -210,62 +256,119 @@ impl Bvh {
 
     /// [`Self::closest_hit`] with the given node test (a narrower one where the CPU lacks its instructions).
     pub fn closest_hit_using(&self, test: NodeTest, origin: Vec3, dir: Vec3, tmin: f32, tmax: f32) -> Option<Hit> {
-        let bvh = self.cwbvh.as_ref()?;
+        let tree = self.tree.as_ref()?;
         if !(origin.is_finite() && dir.is_finite()) || dir == Vec3::ZERO {
             return None;
         }
         let (o, d) = (Vec3A::from(origin), positive_zeros(dir));
+        let (bvh, tris) = match tree {
+            Tree::Cwbvh { cwbvh, triangles } => (cwbvh, triangles.as_slice()),
+            Tree::Float8(bvh8) => {
+                return self.closest_float8(bvh8, test != NodeTest::Obvhs && bvh8::avx2_available(), o, d, tmin, tmax);
+            }
+        };
         let best = match test {
             #[cfg(target_arch = "x86_64")]
             NodeTest::Avx512 if test.supported() => {
                 #[target_feature(enable = "avx2,avx512f,avx512vl,avx512bw")]
-                fn run(this: &Bvh, bvh: &CwBvh, o: Vec3A, d: Vec3A, tmin: f32, tmax: f32) -> Option<(u32, f32, f32, f32)> {
-                    closest_traversal!(this, bvh, o, d, tmin, tmax, bvh_wide::intersect_node_avx512)
+                fn run(tris: &[PackedTriangle], bvh: &CwBvh, o: Vec3A, d: Vec3A, tmin: f32, tmax: f32) -> Option<(u32, f32, f32, f32)> {
+                    closest_traversal!(tris, bvh, o, d, tmin, tmax, bvh_wide::intersect_node_avx512)
                 }
                 // SAFETY: the CPU has AVX-512 F/VL/BW and AVX2 (checked just above).
-                unsafe { run(self, bvh, o, d, tmin, tmax) }
+                unsafe { run(tris, bvh, o, d, tmin, tmax) }
             }
             #[cfg(target_arch = "x86_64")]
             NodeTest::Avx2 | NodeTest::Avx512 if NodeTest::Avx2.supported() => {
                 #[target_feature(enable = "avx2")]
-                fn run(this: &Bvh, bvh: &CwBvh, o: Vec3A, d: Vec3A, tmin: f32, tmax: f32) -> Option<(u32, f32, f32, f32)> {
-                    closest_traversal!(this, bvh, o, d, tmin, tmax, bvh_wide::intersect_node)
+                fn run(tris: &[PackedTriangle], bvh: &CwBvh, o: Vec3A, d: Vec3A, tmin: f32, tmax: f32) -> Option<(u32, f32, f32, f32)> {
+                    closest_traversal!(tris, bvh, o, d, tmin, tmax, bvh_wide::intersect_node)
                 }
                 // SAFETY: the CPU has AVX2 (checked just above).
-                unsafe { run(self, bvh, o, d, tmin, tmax) }
+                unsafe { run(tris, bvh, o, d, tmin, tmax) }
             }
-            _ => closest_traversal!(self, bvh, o, d, tmin, tmax, CwBvhNode::intersect_ray),
+            _ => closest_traversal!(tris, bvh, o, d, tmin, tmax, CwBvhNode::intersect_ray),
         };
         best.map(|(k, t, b1, b2)| Hit { triangle: self.triangle_ids[k as usize], t, bary: Vec2::new(b1, b2) })
     }
 
     /// [`Self::any_hit`] with the given node test (a narrower one where the CPU lacks its instructions).
     pub fn any_hit_using(&self, test: NodeTest, origin: Vec3, dir: Vec3, tmin: f32, tmax: f32) -> bool {
-        let Some(bvh) = self.cwbvh.as_ref() else { return false };
+        let Some(tree) = self.tree.as_ref() else { return false };
         if !(origin.is_finite() && dir.is_finite()) || dir == Vec3::ZERO {
             return false;
         }
         let (o, d) = (Vec3A::from(origin), positive_zeros(dir));
+        let (bvh, tris) = match tree {
+            Tree::Cwbvh { cwbvh, triangles } => (cwbvh, triangles.as_slice()),
+            Tree::Float8(bvh8) => return self.any_float8(bvh8, test != NodeTest::Obvhs && bvh8::avx2_available(), o, d, tmin, tmax),
+        };
         match test {
             #[cfg(target_arch = "x86_64")]
             NodeTest::Avx512 if test.supported() => {
                 #[target_feature(enable = "avx2,avx512f,avx512vl,avx512bw")]
-                fn run(this: &Bvh, bvh: &CwBvh, o: Vec3A, d: Vec3A, tmin: f32, tmax: f32) -> bool {
-                    any_traversal!(this, bvh, o, d, tmin, tmax, bvh_wide::intersect_node_avx512)
+                fn run(tris: &[PackedTriangle], bvh: &CwBvh, o: Vec3A, d: Vec3A, tmin: f32, tmax: f32) -> bool {
+                    any_traversal!(tris, bvh, o, d, tmin, tmax, bvh_wide::intersect_node_avx512)
                 }
                 // SAFETY: the CPU has AVX-512 F/VL/BW and AVX2 (checked just above).
-                unsafe { run(self, bvh, o, d, tmin, tmax) }
+                unsafe { run(tris, bvh, o, d, tmin, tmax) }
             }
             #[cfg(target_arch = "x86_64")]
             NodeTest::Avx2 | NodeTest::Avx512 if NodeTest::Avx2.supported() => {
                 #[target_feature(enable = "avx2")]
-                fn run(this: &Bvh, bvh: &CwBvh, o: Vec3A, d: Vec3A, tmin: f32, tmax: f32) -> bool {
-                    any_traversal!(this, bvh, o, d, tmin, tmax, bvh_wide::intersect_node)
+                fn run(tris: &[PackedTriangle], bvh: &CwBvh, o: Vec3A, d: Vec3A, tmin: f32, tmax: f32) -> bool {
+                    any_traversal!(tris, bvh, o, d, tmin, tmax, bvh_wide::intersect_node)
                 }
                 // SAFETY: the CPU has AVX2 (checked just above).
-                unsafe { run(self, bvh, o, d, tmin, tmax) }
+                unsafe { run(tris, bvh, o, d, tmin, tmax) }
             }
-            _ => any_traversal!(self, bvh, o, d, tmin, tmax, CwBvhNode::intersect_ray),
+            _ => any_traversal!(tris, bvh, o, d, tmin, tmax, CwBvhNode::intersect_ray),
+        }
+    }
+}
+
+impl Bvh {
+    fn closest_float8(&self, bvh8: &Bvh8, avx2: bool, o: Vec3A, d: Vec3A, tmin: f32, tmax: f32) -> Option<Hit> {
+        let ray = PreparedRay::new(o, d);
+        let best = if avx2 {
+            #[cfg(target_arch = "x86_64")]
+            #[target_feature(enable = "avx2")]
+            fn run(bvh8: &Bvh8, ray: &PreparedRay, tmin: f32, tmax: f32) -> Option<bvh8::LaneHit> {
+                bvh8.closest::<true>(ray, tmin, tmax)
+            }
+            #[cfg(not(target_arch = "x86_64"))]
+            fn run(bvh8: &Bvh8, ray: &PreparedRay, tmin: f32, tmax: f32) -> Option<bvh8::LaneHit> {
+                bvh8.closest::<false>(ray, tmin, tmax)
+            }
+            // SAFETY: `avx2` is true only where the CPU has AVX2.
+            #[allow(unused_unsafe)]
+            unsafe {
+                run(bvh8, &ray, tmin, tmax)
+            }
+        } else {
+            bvh8.closest::<false>(&ray, tmin, tmax)
+        };
+        best.map(|(k, t, b1, b2)| Hit { triangle: self.triangle_ids[k as usize], t, bary: Vec2::new(b1, b2) })
+    }
+
+    fn any_float8(&self, bvh8: &Bvh8, avx2: bool, o: Vec3A, d: Vec3A, tmin: f32, tmax: f32) -> bool {
+        let ray = PreparedRay::new(o, d);
+        if avx2 {
+            #[cfg(target_arch = "x86_64")]
+            #[target_feature(enable = "avx2")]
+            fn run(bvh8: &Bvh8, ray: &PreparedRay, tmin: f32, tmax: f32) -> bool {
+                bvh8.any::<true>(ray, tmin, tmax)
+            }
+            #[cfg(not(target_arch = "x86_64"))]
+            fn run(bvh8: &Bvh8, ray: &PreparedRay, tmin: f32, tmax: f32) -> bool {
+                bvh8.any::<false>(ray, tmin, tmax)
+            }
+            // SAFETY: `avx2` is true only where the CPU has AVX2.
+            #[allow(unused_unsafe)]
+            unsafe {
+                run(bvh8, &ray, tmin, tmax)
+            }
+        } else {
+            bvh8.any::<false>(&ray, tmin, tmax)
         }
     }
 }

@@ -4,6 +4,7 @@
 
 pub mod atlas;
 pub mod bvh;
+pub mod bvh8;
 pub mod closest_point;
 pub mod bvh_wide;
 pub mod gltf_io;
