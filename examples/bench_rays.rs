@@ -139,8 +139,8 @@ fn main() -> Result<()> {
     }
     println!("{} coherent rays, {} incoherent rays\n", primary.len(), secondary.len());
     println!("Wall clock, rayon over all threads (sensitive to other load on the machine):\n");
-    println!("| structure | build preset | build ms | coherent closest Mray/s | incoherent closest Mray/s | incoherent any-hit Mray/s | primary hit rate |");
-    println!("|---|---|---|---|---|---|---|");
+    println!("| structure | build preset | build ms | MB | coherent closest Mray/s | incoherent closest Mray/s | incoherent any-hit Mray/s | primary hit rate |");
+    println!("|---|---|---|---|---|---|---|---|");
     let coherent_subset = &primary[..2 * 512 * 512];
     let mut cpu_rows = Vec::new();
 
@@ -173,8 +173,9 @@ fn main() -> Result<()> {
         let inc = best_of(&|| secondary.par_iter().filter(|(o, d)| bvh.closest_hit(*o, *d, 0.0, f32::INFINITY).is_some()).count());
         let any = best_of(&|| secondary.par_iter().filter(|(o, d)| bvh.any_hit(*o, *d, 0.0, f32::INFINITY)).count());
         println!(
-            "| {structure} | {name} | {:.0} | {:.2} | {:.2} | {:.2} | {:.3} |",
+            "| {structure} | {name} | {:.0} | {:.1} | {:.2} | {:.2} | {:.2} | {:.3} |",
             build.as_secs_f64() * 1e3,
+            bvh.footprint_bytes() as f64 / 1e6,
             mrays(primary.len(), coh),
             mrays(secondary.len(), inc),
             mrays(secondary.len(), any),
@@ -235,7 +236,7 @@ fn main() -> Result<()> {
     let inc = time(&|| secondary.par_iter().filter(|(o, d)| closest(*o, *d)).count());
     let anyt = time(&|| secondary.par_iter().filter(|(o, d)| any(*o, *d)).count());
     println!(
-        "| BVH2 (obvhs traversal) | medium | {:.0} | {:.2} | {:.2} | {:.2} | |",
+        "| BVH2 (obvhs traversal) | medium | {:.0} | | {:.2} | {:.2} | {:.2} | |",
         build.as_secs_f64() * 1e3,
         mrays(primary.len(), coh),
         mrays(secondary.len(), inc),

@@ -211,6 +211,15 @@ impl Bvh {
         }
     }
 
+    /// Bytes of nodes and triangles that traversal reads (the mesh-side index table aside).
+    pub fn footprint_bytes(&self) -> usize {
+        match &self.tree {
+            None => 0,
+            Some(Tree::Cwbvh { cwbvh, triangles }) => cwbvh.nodes.len() * std::mem::size_of::<CwBvhNode>() + std::mem::size_of_val(triangles.as_slice()),
+            Some(Tree::Float8(bvh8)) => bvh8.footprint().0,
+        }
+    }
+
     /// The node layout queries traverse (`None` for an empty tree).
     pub fn layout(&self) -> Option<Layout> {
         match self.tree.as_ref()? {

@@ -202,6 +202,13 @@ impl Bvh8 {
         self.nodes.len()
     }
 
+    /// Bytes of nodes and triangle blocks (what traversal reads), and the share of block lanes
+    /// that hold a triangle.
+    pub fn footprint(&self) -> (usize, f32) {
+        let used = self.lanes.iter().filter(|&&l| l != NO_TRIANGLE).count();
+        (self.nodes.len() * std::mem::size_of::<Node8>() + self.blocks.len() * std::mem::size_of::<TriBlock4>(), used as f32 / self.lanes.len().max(1) as f32)
+    }
+
     /// The nearest hit with t in [tmin, tmax]. `AVX2`: the node test to use; call with `true`
     /// only from code compiled for AVX2 on a CPU that has it ([`avx2_available`]).
     #[inline(always)]
