@@ -273,7 +273,8 @@ impl Bvh {
         let (bvh, tris) = match tree {
             Tree::Cwbvh { cwbvh, triangles } => (cwbvh, triangles.as_slice()),
             Tree::Float8(bvh8) => {
-                return self.closest_float8(bvh8, test != NodeTest::Obvhs && bvh8::avx2_available(), o, d, tmin, tmax);
+                let hit = bvh8.closest(&PreparedRay::new(o, d), tmin, tmax, test != NodeTest::Obvhs);
+                return hit.map(|(k, t, b1, b2)| Hit { triangle: self.triangle_ids[k as usize], t, bary: Vec2::new(b1, b2) });
             }
         };
         let best = match test {
@@ -309,7 +310,7 @@ impl Bvh {
         let (o, d) = (Vec3A::from(origin), positive_zeros(dir));
         let (bvh, tris) = match tree {
             Tree::Cwbvh { cwbvh, triangles } => (cwbvh, triangles.as_slice()),
-            Tree::Float8(bvh8) => return self.any_float8(bvh8, test != NodeTest::Obvhs && bvh8::avx2_available(), o, d, tmin, tmax),
+            Tree::Float8(bvh8) => return bvh8.any(&PreparedRay::new(o, d), tmin, tmax, test != NodeTest::Obvhs),
         };
         match test {
             #[cfg(target_arch = "x86_64")]
@@ -331,53 +332,6 @@ impl Bvh {
                 unsafe { run(tris, bvh, o, d, tmin, tmax) }
             }
             _ => any_traversal!(tris, bvh, o, d, tmin, tmax, CwBvhNode::intersect_ray),
-        }
-    }
-}
-
-impl Bvh {
-    fn closest_float8(&self, bvh8: &Bvh8, avx2: bool, o: Vec3A, d: Vec3A, tmin: f32, tmax: f32) -> Option<Hit> {
-        let ray = PreparedRay::new(o, d);
-        let best = if avx2 {
-            #[cfg(target_arch = "x86_64")]
-            #[target_feature(enable = "avx2")]
-            fn run(bvh8: &Bvh8, ray: &PreparedRay, tmin: f32, tmax: f32) -> Option<bvh8::LaneHit> {
-                bvh8.closest::<true>(ray, tmin, tmax)
-            }
-            #[cfg(not(target_arch = "x86_64"))]
-            fn run(bvh8: &Bvh8, ray: &PreparedRay, tmin: f32, tmax: f32) -> Option<bvh8::LaneHit> {
-                bvh8.closest::<false>(ray, tmin, tmax)
-            }
-            // SAFETY: `avx2` is true only where the CPU has AVX2.
-            #[allow(unused_unsafe)]
-            unsafe {
-                run(bvh8, &ray, tmin, tmax)
-            }
-        } else {
-            bvh8.closest::<false>(&ray, tmin, tmax)
-        };
-        best.map(|(k, t, b1, b2)| Hit { triangle: self.triangle_ids[k as usize], t, bary: Vec2::new(b1, b2) })
-    }
-
-    fn any_float8(&self, bvh8: &Bvh8, avx2: bool, o: Vec3A, d: Vec3A, tmin: f32, tmax: f32) -> bool {
-        let ray = PreparedRay::new(o, d);
-        if avx2 {
-            #[cfg(target_arch = "x86_64")]
-            #[target_feature(enable = "avx2")]
-            fn run(bvh8: &Bvh8, ray: &PreparedRay, tmin: f32, tmax: f32) -> bool {
-                bvh8.any::<true>(ray, tmin, tmax)
-            }
-            #[cfg(not(target_arch = "x86_64"))]
-            fn run(bvh8: &Bvh8, ray: &PreparedRay, tmin: f32, tmax: f32) -> bool {
-                bvh8.any::<false>(ray, tmin, tmax)
-            }
-            // SAFETY: `avx2` is true only where the CPU has AVX2.
-            #[allow(unused_unsafe)]
-            unsafe {
-                run(bvh8, &ray, tmin, tmax)
-            }
-        } else {
-            bvh8.any::<false>(&ray, tmin, tmax)
         }
     }
 }

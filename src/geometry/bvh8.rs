@@ -209,23 +209,38 @@ impl Bvh8 {
         (self.nodes.len() * std::mem::size_of::<Node8>() + self.blocks.len() * std::mem::size_of::<TriBlock4>(), used as f32 / self.lanes.len().max(1) as f32)
     }
 
-    /// The nearest hit with t in [tmin, tmax]. `AVX2`: the node test to use; call with `true`
-    /// only from code compiled for AVX2 on a CPU that has it ([`avx2_available`]).
-    #[inline(always)]
-    pub fn closest<const AVX2: bool>(&self, ray: &PreparedRay, tmin: f32, tmax: f32) -> Option<LaneHit> {
+    /// The nearest hit with t in [tmin, tmax]. `avx2`: use the AVX2 node test where the CPU has
+    /// it (else the scalar one, which gives the same masks).
+    pub fn closest(&self, ray: &PreparedRay, tmin: f32, tmax: f32, avx2: bool) -> Option<LaneHit> {
         let mut best = None;
-        self.walk::<true, AVX2>(ray, tmin, tmax, &mut best);
+        self.dispatch::<true>(ray, tmin, tmax, avx2, &mut best);
         best
     }
 
     /// Whether anything lies on the segment t in [tmin, tmax]; stops at the first hit.
+    pub fn any(&self, ray: &PreparedRay, tmin: f32, tmax: f32, avx2: bool) -> bool {
+        self.dispatch::<false>(ray, tmin, tmax, avx2, &mut None)
+    }
+
+    /// [`Self::walk`] compiled for AVX2 where asked for and available, else the portable one.
     #[inline(always)]
-    pub fn any<const AVX2: bool>(&self, ray: &PreparedRay, tmin: f32, tmax: f32) -> bool {
-        self.walk::<false, AVX2>(ray, tmin, tmax, &mut None)
+    fn dispatch<const CLOSEST: bool>(&self, ray: &PreparedRay, tmin: f32, tmax: f32, avx2: bool, best: &mut Option<LaneHit>) -> bool {
+        #[cfg(target_arch = "x86_64")]
+        if avx2 && avx2_available() {
+            #[target_feature(enable = "avx2")]
+            fn run<const CLOSEST: bool>(bvh: &Bvh8, ray: &PreparedRay, tmin: f32, tmax: f32, best: &mut Option<LaneHit>) -> bool {
+                bvh.walk::<CLOSEST, true>(ray, tmin, tmax, best)
+            }
+            // SAFETY: the CPU has AVX2 (checked just above).
+            return unsafe { run::<CLOSEST>(self, ray, tmin, tmax, best) };
+        }
+        let _ = avx2;
+        self.walk::<CLOSEST, false>(ray, tmin, tmax, best)
     }
 
     /// The traversal. `CLOSEST`: visit children nearest first, shrink the far limit to each hit
-    /// and keep the nearest in `best`; otherwise stop at the first hit and return true.
+    /// and keep the nearest in `best`; otherwise stop at the first hit and return true. `AVX2`:
+    /// the node test; `true` only from code compiled for AVX2 on a CPU that has it.
     #[inline(always)]
     fn walk<const CLOSEST: bool, const AVX2: bool>(&self, ray: &PreparedRay, tmin: f32, tmax: f32, best: &mut Option<LaneHit>) -> bool {
         if self.nodes.is_empty() {
