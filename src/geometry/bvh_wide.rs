@@ -1,4 +1,5 @@
-//! The CWBVH node test on 8 children at once (AVX2 or AVX-512), for [`super::bvh::Bvh`]'s traversal.
+//! The CWBVH node test on 8 children at once (AVX2 or AVX-512), for the compressed layout of
+//! [`super::bvh::Bvh`] (the reference layout; the default is [`super::bvh8`]).
 //!
 //! obvhs tests a compressed wide node's 8 child boxes 4 at a time with SSE, converting each
 //! quantised plane byte to f32 one by one. With AVX2 the 8 bytes of a plane row become 8 floats in
