@@ -7,7 +7,7 @@
 //! Each row also gives the rays a step traced (counted by the renderer, `render::ray_count`: the
 //! tally's growth over the step) and secondary rays per second of the whole step.
 //!
-//! cargo run --release --example bench_step [-- --scene nerfactor_hotdog --steps 10 --no-mitsuba --json]
+//! cargo run --release --example bench_step [-- --scene nerfactor_hotdog --steps 10 --no-mitsuba --json --only "16 spp"]
 //!
 //! `--json` prints one object `{"rows": [...]}` to stdout (notes go to stderr): per setting `mode`,
 //! `spp`, `bounces`, `reconstruct_s` (median), the ray counts, and `mitsuba_s` only where Mitsuba ran.
@@ -51,6 +51,10 @@ struct Args {
     /// Print one JSON object (rows of mode, spp, bounces, reconstruct_s, ...) instead of tables.
     #[arg(long)]
     json: bool,
+    /// Run only the settings whose name contains this text (for example "4 spp, direct"), to
+    /// profile one setting with `perf record`.
+    #[arg(long)]
+    only: Option<String>,
 }
 
 fn median(mut v: Vec<f64>) -> f64 {
@@ -93,6 +97,9 @@ fn main() -> Result<()> {
     ];
     let mut rows = Vec::new();
     for (name, mode, spp, effects, denoise, depth) in settings {
+        if args.only.as_ref().is_some_and(|only| !name.contains(only.as_str())) {
+            continue;
+        }
         let config = FitConfig { mode, spp: spp.max(1), batch: 1, iterations: args.steps + 1, texture_res: args.texture_res, light_res: args.light_res, checkpoint_every: 0, denoise, ..FitConfig::default() };
         let mut ctx = shading_context(&prepared, &config);
         ctx.effects = effects;
