@@ -52,6 +52,7 @@ struct Args {
 }
 
 fn main() -> Result<()> {
+    reconstruct::allocator::keep_freed_pages();
     let a = Args::parse();
     let mode = match a.mode.as_str() {
         "auto" => None,

@@ -70,6 +70,7 @@ struct Args {
 }
 
 fn main() -> Result<()> {
+    reconstruct::allocator::keep_freed_pages();
     let args = Args::parse();
     let scene = args.scene.clone().unwrap_or_else(|| {
         if shared_dir().join("data/nerfactor/hotdog_2163").is_dir() { "nerfactor_hotdog".into() } else { "default".into() }

@@ -30,6 +30,7 @@ fn peak_rss_gib() -> Option<f64> {
 }
 
 fn main() -> Result<()> {
+    reconstruct::allocator::keep_freed_pages();
     let size: usize = arg("--size", 256);
     let repeats: usize = arg("--repeats", 2);
     let views: Vec<usize> = arg("--views", "1,2".to_string()).split(',').filter_map(|v| v.parse().ok()).collect();

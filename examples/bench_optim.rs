@@ -8,5 +8,6 @@ static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
 mod body;
 
 fn main() -> anyhow::Result<()> {
+    reconstruct::allocator::keep_freed_pages();
     body::run("mimalloc")
 }

@@ -125,6 +125,7 @@ impl Row {
 }
 
 fn main() -> anyhow::Result<()> {
+    reconstruct::allocator::keep_freed_pages();
     let args = Args::parse();
     let gt = shared_dir().join("data/nerfactor/hotdog_2163/gt");
     let (mesh, what) = if gt.exists() {

@@ -63,6 +63,7 @@ fn median(mut v: Vec<f64>) -> f64 {
 }
 
 fn main() -> Result<()> {
+    reconstruct::allocator::keep_freed_pages();
     let args = Args::parse();
     let prepared = prepare(&args.scene, None, GeometrySource::GroundTruth, &GeometryPassConfig::default(), &FitConfig { texture_res: args.texture_res, ..FitConfig::default() }, 1, false)?;
     // One view, the first training view, as the Mitsuba script uses.

@@ -228,6 +228,7 @@ fn barycentrics(truth: &Mesh, t: usize, point: Vec3) -> Vec3 {
 }
 
 fn main() -> Result<()> {
+    reconstruct::allocator::keep_freed_pages();
     let args = Args::parse();
     let report_path = args.run.join("report.json");
     let report: RunReport = serde_json::from_str(&std::fs::read_to_string(&report_path).with_context(|| format!("{} is not a finished run folder", args.run.display()))?)

@@ -62,6 +62,7 @@ fn read_report(run: &Path) -> Result<RunReport> {
 }
 
 fn main() -> Result<()> {
+    reconstruct::allocator::keep_freed_pages();
     let args = Args::parse();
     let report = read_report(&args.run)?;
     let model = args.run.join("model");

@@ -36,6 +36,7 @@ struct Args {
 }
 
 fn main() -> Result<()> {
+    reconstruct::allocator::keep_freed_pages();
     let a = Args::parse();
     let out = a.out.unwrap_or_else(|| default_out(&a.scene));
     let base = ReconstructOptions {

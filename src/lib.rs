@@ -1,6 +1,7 @@
 //! reconstruct: shape, material and light from multi-view images by differentiable rendering
 //! (NVDiffRecMC-style), optionally guided by IDArb pseudo-labels. See README.md and docs/model.md.
 
+pub mod allocator;
 pub mod atomic_write;
 pub mod color;
 pub mod eval;

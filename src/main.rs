@@ -303,6 +303,7 @@ fn reconstruct(a: ReconstructArgs) -> Result<()> {
 }
 
 fn main() -> Result<()> {
+    reconstruct::allocator::keep_freed_pages();
     let cli = Cli::parse();
     let Some(command) = cli.command else { return reconstruct(cli.reconstruct) };
     match command {

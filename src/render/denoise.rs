@@ -7,11 +7,13 @@
 //! depth step to a 4-neighbour). The weights come from the guides only, never from the noisy image,
 //! so the operator is linear in x and its adjoint is the transpose:
 //!   ∂L/∂x(q) = Σ_p w(p, q) · g(p) / W(p).
-//! The normalised weights are computed once per set of guides (`CrossBilateral::new`) and both
-//! passes read them through the same window walk; the backward is a gather over q's window (the
-//! window is symmetric), so it is as parallel and race-free as the forward.
+//! The normalised weights are computed once per set of guides (`CrossBilateral::new`), eight
+//! taps at a time (`wide`'s f32x8 and its exp), and both passes read them row by row through the
+//! same window walk. The forward gathers over p's window; the backward scatters p's row into its
+//! window, each band of image rows into its own buffer, and the bands are then summed in a fixed
+//! order, so it reads the weights in order and stays race-free and deterministic.
 //! Pixels without a surface pass through unchanged and never mix with covered ones. Taps whose
-//! normal factor is below 1e-12 are dropped (exactly 0), which skips their exp.
+//! normal factor is below 1e-12 are dropped (exactly 0), and both passes skip them.
 //!
 //! NVDiffRecMC uses σ = 2 and a 23×23 window (radius 2⌈2.5σ⌉+1 = 11); taps beyond 3σ weigh < 1.2 %
 //! of the centre, so the default radius here is ⌈3σ⌉ = 6 (169 taps instead of 529).
@@ -151,8 +153,10 @@ impl WindowTables {
     }
 }
 
-/// w(centre, tap) before normalisation; `off` indexes tap − centre in the window.
-#[inline]
+/// w(centre, tap) before normalisation; `off` indexes tap − centre in the window. The scalar
+/// definition of the formula at the top of the file: the tests hold the vectorised evaluation in
+/// [`WindowScratch::weights`] to it.
+#[cfg(test)]
 fn raw_weight(g: &DenoiseGuides, p: &BilateralParams, t: &WindowTables, centre: usize, tap: usize, off: usize) -> f32 {
     match (g.covered[centre], g.covered[tap]) {
         (false, false) => return if centre == tap { 1.0 } else { 0.0 },
@@ -163,28 +167,104 @@ fn raw_weight(g: &DenoiseGuides, p: &BilateralParams, t: &WindowTables, centre: 
         return 1.0;
     }
     let cos = g.normal[centre].dot(g.normal[tap]).clamp(FLT_EPS as f32, 1.0);
-    let w_normal = powi_by_squaring(cos, p.normal_power);
-    if w_normal < 1e-12 {
-        return 0.0; // below f32 resolution of any sum it joins; skips the exp
+    let w_normal = powi_by_squaring(cos, p.normal_power, 1.0);
+    if w_normal < NORMAL_CUTOFF {
+        return 0.0;
     }
     let dz = (g.depth[tap] - g.depth[centre]).abs();
     let depth_exponent = dz / (g.depth_slope[centre] * t.dist[off]).max(FLT_EPS as f32);
-    // One exp for the spatial and the depth factor.
     w_normal * (-(t.spatial_exponent[off] + depth_exponent)).exp()
 }
 
-/// x^n for n ≥ 0, inlined (the generic `powi` is a library call per tap).
+/// Normal factors below this are dropped (weight exactly 0): below f32 resolution of any sum
+/// the tap joins, since the centre's own weight is 1.
+const NORMAL_CUTOFF: f32 = 1e-12;
+
+/// x^n for n ≥ 0 by squaring (the generic `powi` is a library call per tap); generic so the
+/// scalar reference and the eight-lane evaluation share it.
 #[inline]
-fn powi_by_squaring(mut x: f32, mut n: u32) -> f32 {
-    let mut r = 1.0;
+fn powi_by_squaring<F: Copy + std::ops::Mul<Output = F>>(mut x: F, mut n: u32, one: F) -> F {
+    let mut r = one;
     while n > 0 {
         if n & 1 == 1 {
-            r *= x;
+            r = r * x;
         }
-        x *= x;
+        x = x * x;
         n >>= 1;
     }
     r
+}
+
+/// The guides of one window, gathered into contiguous per-tap arrays (padded to a multiple of
+/// eight, out-of-image taps uncovered), so the weights are evaluated eight taps at a time.
+struct WindowScratch {
+    nx: Vec<f32>,
+    ny: Vec<f32>,
+    nz: Vec<f32>,
+    depth: Vec<f32>,
+    covered: Vec<f32>,
+    /// The window's d²/(2σ²) and |d| per offset, padded with ones (the padding is uncovered).
+    spatial_exponent: Vec<f32>,
+    dist: Vec<f32>,
+}
+
+impl WindowScratch {
+    fn new(t: &WindowTables) -> Self {
+        let taps = t.side * t.side;
+        let padded = taps.div_ceil(8) * 8;
+        let pad = |v: &[f32]| {
+            let mut p = v.to_vec();
+            p.resize(padded, 1.0);
+            p
+        };
+        WindowScratch {
+            nx: vec![0.0; padded],
+            ny: vec![0.0; padded],
+            nz: vec![0.0; padded],
+            depth: vec![0.0; padded],
+            covered: vec![0.0; padded],
+            spatial_exponent: pad(&t.spatial_exponent),
+            dist: pad(&t.dist),
+        }
+    }
+
+    /// Writes the raw weights w(p, p + d) of covered pixel `p` into `row` (one per offset, 0 outside
+    /// the image, at uncovered taps and below the normal cut-off) and returns their sum.
+    fn weights(&mut self, g: &DenoiseGuides, params: &BilateralParams, p: usize, row: &mut [f32]) -> f64 {
+        use wide::f32x8;
+        let (w, h, r) = (g.width, g.height, params.radius);
+        self.covered.fill(0.0);
+        for_each_span(w, h, r, p, |q0, off0, len| {
+            for j in 0..len {
+                let (q, o) = (q0 + j, off0 + j);
+                let n = g.normal[q];
+                (self.nx[o], self.ny[o], self.nz[o]) = (n.x, n.y, n.z);
+                self.depth[o] = g.depth[q];
+                self.covered[o] = if g.covered[q] { 1.0 } else { 0.0 };
+            }
+        });
+        let (np, zp) = (g.normal[p], g.depth[p]);
+        let (npx, npy, npz) = (f32x8::splat(np.x), f32x8::splat(np.y), f32x8::splat(np.z));
+        let (zp8, slope) = (f32x8::splat(zp), f32x8::splat(g.depth_slope[p]));
+        let (eps, one, zero, cutoff) = (f32x8::splat(FLT_EPS as f32), f32x8::ONE, f32x8::ZERO, f32x8::splat(NORMAL_CUTOFF));
+        let load = |v: &[f32], i: usize| f32x8::new(v[i..i + 8].try_into().expect("chunk of eight"));
+        let mut sum = 0.0f64;
+        let taps = row.len();
+        for i in (0..self.covered.len()).step_by(8) {
+            let cos = (npx * load(&self.nx, i) + npy * load(&self.ny, i) + npz * load(&self.nz, i)).fast_max(eps).fast_min(one);
+            let w_normal = powi_by_squaring(cos, params.normal_power, one);
+            let w_normal = w_normal.simd_ge(cutoff).select(w_normal, zero) * load(&self.covered, i);
+            let depth_exponent = (load(&self.depth, i) - zp8).abs() / (slope * load(&self.dist, i)).fast_max(eps);
+            let wt: [f32; 8] = (w_normal * (-(load(&self.spatial_exponent, i) + depth_exponent)).exp()).into();
+            let n = (taps - i).min(8);
+            row[i..i + n].copy_from_slice(&wt[..n]);
+        }
+        row[taps / 2] = 1.0; // the centre: exactly 1, whatever its normal
+        for &v in row.iter() {
+            sum += v as f64;
+        }
+        sum
+    }
 }
 
 impl CrossBilateral {
@@ -199,16 +279,14 @@ impl CrossBilateral {
             rows[p] = row as u32;
         }
         let mut weights = vec![0.0f32; covered.len() * taps];
-        weights.par_chunks_mut(taps).zip(covered.par_iter()).for_each(|(row, &p)| {
-            let mut sum = 0.0f64;
-            for_each_in_window(w, h, r, p, |q, off| {
-                let wt = raw_weight(g, &params, &tables, p, q, off);
-                row[off] = wt;
-                sum += wt as f64;
-            });
-            let inv = (1.0 / sum.max(FLT_EPS)) as f32;
-            row.iter_mut().for_each(|v| *v *= inv);
-        });
+        weights.par_chunks_mut(taps).zip(covered.par_iter()).for_each_init(
+            || WindowScratch::new(&tables),
+            |scratch, (row, &p)| {
+                let sum = scratch.weights(g, &params, p, row);
+                let inv = (1.0 / sum.max(FLT_EPS)) as f32;
+                row.iter_mut().for_each(|v| *v *= inv);
+            },
+        );
         CrossBilateral { width: w, height: h, radius: r, rows: Arc::new(rows), weights: Arc::new(weights) }
     }
 
@@ -219,6 +297,12 @@ impl CrossBilateral {
 
     fn taps(&self) -> usize {
         (2 * self.radius + 1).pow(2)
+    }
+
+    /// The normalised weights of covered pixel `p` (row `r`), one per window offset.
+    fn row(&self, r: u32) -> &[f32] {
+        let taps = self.taps();
+        &self.weights[r as usize * taps..(r as usize + 1) * taps]
     }
 
     fn check_dims(&self, shape: &[usize]) -> Result<usize> {
@@ -232,27 +316,25 @@ impl CrossBilateral {
     }
 }
 
-/// Calls `f(q, offset_index)` for every pixel q in the window around `p` (clipped to the image);
-/// the offset index is that of q − p. The window walk both passes share.
+/// Calls `f(q0, offset0, len)` for each image row of the window around `p`, clipped to the
+/// image: the pixels q0 .. q0 + len, whose offsets from p have indices offset0 .. offset0 + len.
+/// The window walk the weights, the forward and the backward share.
 #[inline]
-fn for_each_in_window(w: usize, h: usize, r: usize, p: usize, mut f: impl FnMut(usize, usize)) {
-    let (w, h, r) = (w as i64, h as i64, r as i64);
-    let (px, py) = (p as i64 % w, p as i64 / w);
+fn for_each_span(w: usize, h: usize, r: usize, p: usize, mut f: impl FnMut(usize, usize, usize)) {
+    let (px, py) = (p % w, p / w);
     let side = 2 * r + 1;
-    for dy in -r..=r {
-        let y = py + dy;
-        if y < 0 || y >= h {
-            continue;
-        }
-        for dx in -r..=r {
-            let x = px + dx;
-            if x < 0 || x >= w {
-                continue;
-            }
-            f((y * w + x) as usize, ((dy + r) * side + dx + r) as usize);
-        }
+    let (x0, x1) = (px.saturating_sub(r), (px + r).min(w - 1));
+    let (y0, y1) = (py.saturating_sub(r), (py + r).min(h - 1));
+    for y in y0..=y1 {
+        let off0 = (y + r - py) * side + (x0 + r - px);
+        f(y * w + x0, off0, x1 - x0 + 1);
     }
 }
+
+/// Image rows per band of the backward's scatter; each band also writes `radius` rows above
+/// and below it, so bands much taller than the window keep that overlap small, and 256-row views
+/// still give every core several bands.
+const BACKWARD_BAND_ROWS: usize = 32;
 
 impl Kernel for CrossBilateral {
     fn name(&self) -> &'static str {
@@ -266,55 +348,77 @@ impl Kernel for CrossBilateral {
 
     fn forward<T: Real>(&self, x: &[&[T]], shapes: &[&[usize]], out: &mut [T]) -> Result<()> {
         let (x, c) = (x[0], self.check_dims(shapes[0])?);
-        let taps = self.taps();
         out.par_chunks_mut(c).enumerate().for_each(|(p, o)| {
             let r = self.rows[p];
             if r == NO_ROW {
                 o.copy_from_slice(&x[p * c..(p + 1) * c]);
                 return;
             }
-            let row = &self.weights[r as usize * taps..(r as usize + 1) * taps];
-            for_each_in_window(self.width, self.height, self.radius, p, |q, off| {
-                if row[off] == 0.0 {
-                    return;
-                }
-                let w = T::from_f64(row[off] as f64);
-                for k in 0..c {
-                    o[k] += w * x[q * c + k];
+            let row = self.row(r);
+            for_each_span(self.width, self.height, self.radius, p, |q0, off0, len| {
+                for (j, &w) in row[off0..off0 + len].iter().enumerate() {
+                    if w == 0.0 {
+                        continue; // an uncovered tap may hold anything; it must not leak in
+                    }
+                    let (w, xq) = (T::from_f64(w as f64), &x[(q0 + j) * c..(q0 + j + 1) * c]);
+                    for k in 0..c {
+                        o[k] += w * xq[k];
+                    }
                 }
             });
         });
         Ok(())
     }
 
+    /// The transpose, as a scatter: each covered p adds ŵ(p, q)·g(p) to every q of its window,
+    /// reading its weights in order. Bands of image rows scatter into their own buffers (the
+    /// band plus `radius` rows either side), which are then summed row by row in a fixed
+    /// order, so the result is race-free and the same on every run.
     fn backward<T: Real>(&self, _x: &[&[T]], shapes: &[&[usize]], g: &[T], grads: &mut [Option<&mut [T]>]) -> Result<()> {
         let Some(gx) = grads[0].as_deref_mut() else { return Ok(()) };
         let c = self.check_dims(shapes[0])?;
-        let taps = self.taps();
-        gx.par_chunks_mut(c).enumerate().for_each(|(q, o)| {
-            if self.rows[q] == NO_ROW {
-                // Passed through, and read by no covered pixel.
-                for k in 0..c {
-                    o[k] += g[q * c + k];
+        let (w, h, r) = (self.width, self.height, self.radius);
+        let bands: Vec<(usize, Vec<T>)> = (0..h.div_ceil(BACKWARD_BAND_ROWS))
+            .into_par_iter()
+            .map(|b| {
+                let (y0, y1) = (b * BACKWARD_BAND_ROWS, ((b + 1) * BACKWARD_BAND_ROWS).min(h));
+                let (top, bottom) = (y0.saturating_sub(r), (y1 + r).min(h));
+                let mut acc = vec![T::default(); (bottom - top) * w * c];
+                let base = top * w;
+                for p in y0 * w..y1 * w {
+                    let gp = &g[p * c..(p + 1) * c];
+                    let rp = self.rows[p];
+                    if rp == NO_ROW {
+                        // Passed through, and read by no covered pixel.
+                        for k in 0..c {
+                            acc[(p - base) * c + k] += gp[k];
+                        }
+                        continue;
+                    }
+                    let row = self.row(rp);
+                    for_each_span(w, h, r, p, |q0, off0, len| {
+                        for (j, &wt) in row[off0..off0 + len].iter().enumerate() {
+                            if wt == 0.0 {
+                                continue;
+                            }
+                            let (wt, a) = (T::from_f64(wt as f64), &mut acc[(q0 + j - base) * c..(q0 + j - base + 1) * c]);
+                            for k in 0..c {
+                                a[k] += wt * gp[k];
+                            }
+                        }
+                    });
                 }
-                return;
+                (top, acc)
+            })
+            .collect();
+        gx.par_chunks_mut(w * c).enumerate().for_each(|(y, out_row)| {
+            for (top, acc) in &bands {
+                let rows_in = acc.len() / (w * c);
+                if y >= *top && y < top + rows_in {
+                    let src = &acc[(y - top) * w * c..(y - top + 1) * w * c];
+                    out_row.iter_mut().zip(src).for_each(|(o, &s)| *o += s);
+                }
             }
-            // Transpose: q received ŵ(p, q) from every covered p in its window; the offset
-            // q − p is the mirror of the walk's offset p − q.
-            for_each_in_window(self.width, self.height, self.radius, q, |p, off_pq| {
-                let r = self.rows[p];
-                if r == NO_ROW {
-                    return;
-                }
-                let w = self.weights[r as usize * taps + taps - 1 - off_pq];
-                if w == 0.0 {
-                    return;
-                }
-                let w = T::from_f64(w as f64);
-                for k in 0..c {
-                    o[k] += w * g[p * c + k];
-                }
-            });
         });
         Ok(())
     }
@@ -378,6 +482,72 @@ mod tests {
         for i in 0..w * h {
             assert!((out[i] - img[i]).abs() < 1e-5, "pixel {i}: {} vs {}", out[i], img[i]);
         }
+        Ok(())
+    }
+
+    /// Guides with two orientations, depth ramps and steps, holes and a zero normal, on an
+    /// image taller than several backward bands.
+    fn varied_guides(w: usize, h: usize, seed: u64) -> DenoiseGuides {
+        let mut s = Sampler::from_seed(seed);
+        let mut jitter = || 0.3 * (s.next_f32() - 0.5);
+        let normal = (0..w * h)
+            .map(|i| if i == 5 { Vec3::ZERO } else if (i % w) < w / 3 { Vec3::Z } else { Vec3::new(0.6 + jitter(), jitter(), 0.8) })
+            .collect();
+        let depth = (0..w * h).map(|i| 2.0 + 0.02 * (i % w) as f32 + if (i / w) % 9 == 0 { 0.5 } else { 0.0 }).collect();
+        let covered = (0..w * h).map(|i| i % 13 != 4 && (i / w) % 17 != 16).collect();
+        DenoiseGuides::new(w, h, normal, depth, covered).expect("test setup")
+    }
+
+    #[test]
+    fn vectorised_weights_match_the_scalar_definition() {
+        let (w, h) = (23, 19);
+        let g = varied_guides(w, h, 3);
+        for params in [BilateralParams::default(), BilateralParams { sigma: 1.0, radius: 2, normal_power: 5 }] {
+            let t = WindowTables::new(&params);
+            let mut scratch = WindowScratch::new(&t);
+            let mut row = vec![0.0f32; t.side * t.side];
+            for p in (0..w * h).filter(|&p| g.covered[p]) {
+                let sum = scratch.weights(&g, &params, p, &mut row);
+                let mut reference = vec![0.0f32; row.len()];
+                for_each_span(w, h, params.radius, p, |q0, off0, len| {
+                    for j in 0..len {
+                        reference[off0 + j] = raw_weight(&g, &params, &t, p, q0 + j, off0 + j);
+                    }
+                });
+                for (off, (a, b)) in row.iter().zip(&reference).enumerate() {
+                    assert!((a - b).abs() <= 1e-6 * b.abs().max(1e-6), "pixel {p}, offset {off}: {a} vs {b}");
+                }
+                let ref_sum: f64 = reference.iter().map(|&v| v as f64).sum();
+                assert!((sum - ref_sum).abs() <= 1e-5 * ref_sum, "pixel {p}: sum {sum} vs {ref_sum}");
+            }
+        }
+    }
+
+    #[test]
+    fn banded_backward_is_the_adjoint_across_bands() -> anyhow::Result<()> {
+        // ⟨f(x), y⟩ = ⟨x, fᵀ(y)⟩ on an image of three bands (with their overlaps), in f64.
+        let (w, h, c) = (11, 2 * BACKWARD_BAND_ROWS + 7, 2);
+        let f = CrossBilateral::new(Arc::new(varied_guides(w, h, 5)), BilateralParams { sigma: 1.5, radius: 3, normal_power: 16 });
+        let mut s = Sampler::from_seed(9);
+        let x: Vec<f64> = (0..w * h * c).map(|_| s.next_f32() as f64).collect();
+        let y: Vec<f64> = (0..w * h * c).map(|_| s.next_f32() as f64 - 0.5).collect();
+        let shape = [h, w, c];
+        let mut fx = vec![0.0f64; x.len()];
+        f.forward(&[&x], &[&shape], &mut fx)?;
+        let mut fty = vec![0.0f64; x.len()];
+        f.backward(&[&x], &[&shape], &y, &mut [Some(&mut fty)])?;
+        let lhs: f64 = fx.iter().zip(&y).map(|(a, b)| a * b).sum();
+        let rhs: f64 = x.iter().zip(&fty).map(|(a, b)| a * b).sum();
+        assert!((lhs - rhs).abs() < 1e-9 * lhs.abs().max(1.0), "{lhs} vs {rhs}");
+        // And the weights reach across a band boundary: a pulse just below the first band
+        // spreads gradient into the band above.
+        let mut pulse = vec![0.0f64; x.len()];
+        let first_row_below = BACKWARD_BAND_ROWS * w;
+        let q = (first_row_below..first_row_below + w).find(|&q| f.rows[q] != NO_ROW && f.rows[q - w] != NO_ROW).expect("a covered pair across the boundary");
+        pulse[q * c] = 1.0;
+        let mut gt = vec![0.0f64; x.len()];
+        f.backward(&[&x], &[&shape], &pulse, &mut [Some(&mut gt)])?;
+        assert!(gt[(q - w) * c] > 0.0, "no gradient across the band boundary");
         Ok(())
     }
 
