@@ -7,7 +7,7 @@ use std::path::Path;
 
 /// Bottom to top; modules in one entry are peers and may import each other.
 const LAYERS: &[&[&str]] = &[
-    &["math", "color", "rng", "atomic_write", "image"],
+    &["math", "color", "rng", "atomic_write", "image", "allocator"],
     &["scene"],
     &["geometry", "material"],
     &["light"],

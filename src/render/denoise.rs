@@ -378,6 +378,9 @@ impl Kernel for CrossBilateral {
         let Some(gx) = grads[0].as_deref_mut() else { return Ok(()) };
         let c = self.check_dims(shapes[0])?;
         let (w, h, r) = (self.width, self.height, self.radius);
+        if w == 0 || h == 0 {
+            return Ok(()); // an empty image has no gradient to pass
+        }
         let bands: Vec<(usize, Vec<T>)> = (0..h.div_ceil(BACKWARD_BAND_ROWS))
             .into_par_iter()
             .map(|b| {
