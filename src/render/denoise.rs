@@ -496,7 +496,7 @@ mod tests {
         let normal = (0..w * h)
             .map(|i| if i == 5 { Vec3::ZERO } else if (i % w) < w / 3 { Vec3::Z } else { Vec3::new(0.6 + jitter(), jitter(), 0.8) })
             .collect();
-        let depth = (0..w * h).map(|i| 2.0 + 0.02 * (i % w) as f32 + if (i / w) % 9 == 0 { 0.5 } else { 0.0 }).collect();
+        let depth = (0..w * h).map(|i| 2.0 + 0.02 * (i % w) as f32 + if (i / w).is_multiple_of(9) { 0.5 } else { 0.0 }).collect();
         let covered = (0..w * h).map(|i| i % 13 != 4 && (i / w) % 17 != 16).collect();
         DenoiseGuides::new(w, h, normal, depth, covered).expect("test setup")
     }
