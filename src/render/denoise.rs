@@ -158,10 +158,9 @@ impl WindowTables {
 /// [`WindowScratch::weights`] to it.
 #[cfg(test)]
 fn raw_weight(g: &DenoiseGuides, p: &BilateralParams, t: &WindowTables, centre: usize, tap: usize, off: usize) -> f32 {
-    match (g.covered[centre], g.covered[tap]) {
-        (false, false) => return if centre == tap { 1.0 } else { 0.0 },
-        (true, true) => {}
-        _ => return 0.0,
+    assert!(g.covered[centre], "only covered pixels have weights");
+    if !g.covered[tap] {
+        return 0.0;
     }
     if centre == tap {
         return 1.0;
@@ -248,7 +247,6 @@ impl WindowScratch {
         let (zp8, slope) = (f32x8::splat(zp), f32x8::splat(g.depth_slope[p]));
         let (eps, one, zero, cutoff) = (f32x8::splat(FLT_EPS as f32), f32x8::ONE, f32x8::ZERO, f32x8::splat(NORMAL_CUTOFF));
         let load = |v: &[f32], i: usize| f32x8::new(v[i..i + 8].try_into().expect("chunk of eight"));
-        let mut sum = 0.0f64;
         let taps = row.len();
         for i in (0..self.covered.len()).step_by(8) {
             let cos = (npx * load(&self.nx, i) + npy * load(&self.ny, i) + npz * load(&self.nz, i)).fast_max(eps).fast_min(one);
@@ -260,10 +258,7 @@ impl WindowScratch {
             row[i..i + n].copy_from_slice(&wt[..n]);
         }
         row[taps / 2] = 1.0; // the centre: exactly 1, whatever its normal
-        for &v in row.iter() {
-            sum += v as f64;
-        }
-        sum
+        row.iter().map(|&v| v as f64).sum()
     }
 }
 
@@ -299,10 +294,20 @@ impl CrossBilateral {
         (2 * self.radius + 1).pow(2)
     }
 
-    /// The normalised weights of covered pixel `p` (row `r`), one per window offset.
-    fn row(&self, r: u32) -> &[f32] {
+    /// Calls `f(q, ŵ(p, q))` for every tap q of covered pixel `p` (its weight row `r`) whose
+    /// weight is not zero, in window order: the walk both passes share. Zero taps are skipped,
+    /// not multiplied, so an uncovered tap's value (which may be anything) never leaks in.
+    #[inline]
+    fn for_each_tap(&self, p: usize, r: u32, mut f: impl FnMut(usize, f32)) {
         let taps = self.taps();
-        &self.weights[r as usize * taps..(r as usize + 1) * taps]
+        let row = &self.weights[r as usize * taps..(r as usize + 1) * taps];
+        for_each_span(self.width, self.height, self.radius, p, |q0, off0, len| {
+            for (j, &w) in row[off0..off0 + len].iter().enumerate() {
+                if w != 0.0 {
+                    f(q0 + j, w);
+                }
+            }
+        });
     }
 
     fn check_dims(&self, shape: &[usize]) -> Result<usize> {
@@ -354,16 +359,10 @@ impl Kernel for CrossBilateral {
                 o.copy_from_slice(&x[p * c..(p + 1) * c]);
                 return;
             }
-            let row = self.row(r);
-            for_each_span(self.width, self.height, self.radius, p, |q0, off0, len| {
-                for (j, &w) in row[off0..off0 + len].iter().enumerate() {
-                    if w == 0.0 {
-                        continue; // an uncovered tap may hold anything; it must not leak in
-                    }
-                    let (w, xq) = (T::from_f64(w as f64), &x[(q0 + j) * c..(q0 + j + 1) * c]);
-                    for k in 0..c {
-                        o[k] += w * xq[k];
-                    }
+            self.for_each_tap(p, r, |q, w| {
+                let (w, xq) = (T::from_f64(w as f64), &x[q * c..(q + 1) * c]);
+                for k in 0..c {
+                    o[k] += w * xq[k];
                 }
             });
         });
@@ -398,16 +397,10 @@ impl Kernel for CrossBilateral {
                         }
                         continue;
                     }
-                    let row = self.row(rp);
-                    for_each_span(w, h, r, p, |q0, off0, len| {
-                        for (j, &wt) in row[off0..off0 + len].iter().enumerate() {
-                            if wt == 0.0 {
-                                continue;
-                            }
-                            let (wt, a) = (T::from_f64(wt as f64), &mut acc[(q0 + j - base) * c..(q0 + j - base + 1) * c]);
-                            for k in 0..c {
-                                a[k] += wt * gp[k];
-                            }
+                    self.for_each_tap(p, rp, |q, wt| {
+                        let (wt, a) = (T::from_f64(wt as f64), &mut acc[(q - base) * c..(q - base + 1) * c]);
+                        for k in 0..c {
+                            a[k] += wt * gp[k];
                         }
                     });
                 }
