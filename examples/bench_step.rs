@@ -5,12 +5,15 @@
 //! (tools/mitsuba/gradient_step.py; skipped with a note when Mitsuba or its LLVM is missing).
 //!
 //! Each row also gives the rays a step traced (counted by the renderer, `render::ray_count`: the
-//! tally's growth over the step) and secondary rays per second of the whole step.
+//! tally's growth over the step) and secondary rays per second of the whole step. A second table
+//! splits the step into its phases (`fit::history::StepPhases`: render, loss, backward, update;
+//! medians of each phase over the timed steps).
 //!
 //! cargo run --release --example bench_step [-- --scene nerfactor_hotdog --steps 10 --no-mitsuba --json --only "16 spp"]
 //!
 //! `--json` prints one object `{"rows": [...]}` to stdout (notes go to stderr): per setting `mode`,
-//! `spp`, `bounces`, `reconstruct_s` (median), the ray counts, and `mitsuba_s` only where Mitsuba ran.
+//! `spp`, `bounces`, `reconstruct_s` (median), the ray counts, the phases' medians (`render_s`,
+//! `loss_s`, `backward_s`, `update_s`), and `mitsuba_s` only where Mitsuba ran.
 
 use std::path::PathBuf;
 use std::process::Command;
@@ -20,6 +23,7 @@ use anyhow::{Context, Result};
 use clap::Parser;
 use reconstruct::fit::config::FitConfig;
 use reconstruct::fit::fitter::Fit;
+use reconstruct::fit::history::StepPhases;
 use reconstruct::fit::parameters::Parameters;
 use reconstruct::fit::export::{write_light, write_model};
 use reconstruct::image::io::write_exr;
@@ -105,18 +109,19 @@ fn main() -> Result<()> {
         let mut ctx = shading_context(&prepared, &config);
         ctx.effects = effects;
         let mut fit = Fit::new(config.clone(), Parameters::from_values(&textures, &light)?, vec![view.clone()], ctx)?;
-        let (mut times, mut rays) = (Vec::new(), RayCount::ZERO);
+        let (mut times, mut phases, mut rays) = (Vec::new(), Vec::new(), RayCount::ZERO);
         for k in 0..=args.steps {
             let (t, before) = (Instant::now(), ray_count::traced_so_far());
-            match fit.step() {
-                Ok(_) => {}
+            let record = match fit.step() {
+                Ok(record) => record,
                 Err(e) => {
                     say(format!("{name}: {e:#}"));
                     break;
                 }
-            }
+            };
             if k > 0 {
                 times.push(t.elapsed().as_secs_f64());
+                phases.push(record.phases);
                 rays += ray_count::traced_so_far() - before;
             }
         }
@@ -124,7 +129,9 @@ fn main() -> Result<()> {
             // Rays of the mean step (steps draw new samples, so counts vary a little).
             let n = times.len() as u64;
             let per_step = RayCount { primary: rays.primary / n, shadow: rays.shadow / n, bounce: rays.bounce / n };
-            rows.push(Row { name, mode, spp, bounces: effects.indirect_bounces, denoise, depth, secs: median(times), rays: per_step });
+            let phase = |f: fn(&StepPhases) -> f64| median(phases.iter().map(f).collect());
+            let phases = StepPhases { render: phase(|p| p.render), loss: phase(|p| p.loss), backward: phase(|p| p.backward), update: phase(|p| p.update) };
+            rows.push(Row { name, mode, spp, bounces: effects.indirect_bounces, denoise, depth, secs: median(times), phases, rays: per_step });
         }
     }
     let mitsuba = if args.no_mitsuba { None } else { run_mitsuba(&prepared, &textures, &light, &args).map_err(|e| say(format!("Mitsuba: skipped ({e:#})"))).ok() };
@@ -141,6 +148,7 @@ fn main() -> Result<()> {
                     "mode": mode, "spp": r.spp, "bounces": r.bounces, "denoise": r.denoise, "reconstruct_s": r.secs,
                     "primary_rays": r.rays.primary, "shadow_rays": r.rays.shadow, "bounce_rays": r.rays.bounce,
                     "secondary_mrays_per_s": r.rays.secondary_mrays_per_s(r.secs),
+                    "render_s": r.phases.render, "loss_s": r.phases.loss, "backward_s": r.phases.backward, "update_s": r.phases.update,
                 });
                 if let Some((d, m)) = r.depth.and_then(|d| mitsuba_step(d, r.spp, "median_s").map(|m| (d, m))) {
                     v["mitsuba_s"] = serde_json::json!(m);
@@ -158,6 +166,11 @@ fn main() -> Result<()> {
         let label = r.depth.map_or(String::new(), |d| format!(" (max_depth {d})"));
         let mrays = if r.rays.secondary() > 0 { format!("{:.2}", r.rays.secondary_mrays_per_s(r.secs)) } else { "–".into() };
         println!("| {} | {:.3} | {} | {mrays} | {}{label} |", r.name, r.secs, r.rays.secondary(), m.map_or("–".into(), |v| format!("{v:.3}")));
+    }
+    println!("\n| phases of the step (medians, ms) | render | loss | backward | update |\n|---|---:|---:|---:|---:|");
+    for r in &rows {
+        let p = r.phases;
+        println!("| {} | {:.1} | {:.1} | {:.1} | {:.1} |", r.name, 1e3 * p.render, 1e3 * p.loss, 1e3 * p.backward, 1e3 * p.update);
     }
     if let Some(m) = &mitsuba {
         println!("\nMitsuba {} ({}, {} threads); first step incl. JIT (s):", m["mitsuba_version"].as_str().unwrap_or("?"), m["variant"].as_str().unwrap_or("?"), m["threads"]);
@@ -180,6 +193,7 @@ struct Row {
     /// Mitsuba's max_depth for the same light transport (None: not compared).
     depth: Option<u32>,
     secs: f64,
+    phases: StepPhases,
     rays: RayCount,
 }
 

@@ -131,7 +131,7 @@ mod tests {
     use crate::fit::objective::LossTerms;
 
     fn record(iteration: usize) -> IterationRecord {
-        IterationRecord { iteration, terms: LossTerms::default(), lr_factor: 1.0, seconds: 0.0 }
+        IterationRecord { iteration, terms: LossTerms::default(), lr_factor: 1.0, seconds: 0.0, phases: Default::default() }
     }
 
     fn progress(iteration: usize) -> Progress {

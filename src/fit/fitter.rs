@@ -25,7 +25,7 @@ use crate::rng::Sampler;
 use super::batch_render::{render_batch, ShadingContext};
 use super::checkpoint::{self, Progress};
 use super::config::FitConfig;
-use super::history::{trailing_mean, IterationRecord};
+use super::history::{trailing_mean, IterationRecord, StepPhases};
 use super::objective::objective;
 use super::settings_diff::differences;
 use super::parameters::{NormalParameter, Parameters, NORMAL_NAME};
@@ -176,12 +176,16 @@ impl Fit {
             None => indices.iter().map(|&i| &self.views[i]).collect(),
         };
         let refine_step = self.refine.as_ref().map(|r| r.begin_step(&batch)).transpose()?;
+        let phase = Instant::now();
         let render = render_batch(&batch, &self.params, &self.ctx, it as u64, refine_step.as_ref().map(|s| &s.normals))?;
+        let (render_s, phase) = (phase.elapsed().as_secs_f64(), Instant::now());
         let (loss, terms) = objective(&batch, &render, &self.params, &self.config, it)?;
+        let (loss_s, phase) = (phase.elapsed().as_secs_f64(), Instant::now());
         if !terms.total.is_finite() {
             bail!("the loss became non-finite at iteration {it} (terms: {terms:?}); lower the learning rates or check the inputs");
         }
         let grads = loss.backward()?;
+        let (backward_s, phase) = (phase.elapsed().as_secs_f64(), Instant::now());
         let lr_factor = self.adam.lr_factor();
         self.adam.step(&grads)?;
         if let (true, Some(n)) = (self.config.normal_map, &self.params.normal) {
@@ -190,7 +194,8 @@ impl Fit {
         if let (Some(r), Some(s)) = (self.refine.as_mut(), &refine_step) {
             r.end_step(s, &grads, lr_factor, it)?;
         }
-        let record = IterationRecord { iteration: it, terms, lr_factor, seconds: t.elapsed().as_secs_f64() };
+        let phases = StepPhases { render: render_s, loss: loss_s, backward: backward_s, update: phase.elapsed().as_secs_f64() };
+        let record = IterationRecord { iteration: it, terms, lr_factor, seconds: t.elapsed().as_secs_f64(), phases };
         self.history.push(record.clone());
         Ok(record)
     }
