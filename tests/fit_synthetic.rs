@@ -180,7 +180,7 @@ fn mean_view_psnr(fit: &Fit) -> Result<f64> {
     let mut total = 0.0;
     for v in &fit.views {
         let r = render_batch(&[v], &fit.params, &fit.ctx, 0, None)?;
-        total += batch_psnr(&r.rgb, &v.target)?;
+        total += batch_psnr(&r.rgb, &v.target.rgba)?;
     }
     Ok(total / fit.views.len() as f64)
 }

@@ -56,6 +56,8 @@ pub struct BatchRender {
     /// The shading normals [N, 3] on the tape, when they are parameters (the normal map, the
     /// vertex refinement); `None` when they are the mesh's fixed ones.
     pub normals: Option<Tensor>,
+    /// The normal map looked up at each row [N, 3], when there is one (its regularisers reuse it).
+    pub normal_map: Option<Tensor>,
 }
 
 /// Row offsets of the views' pixels in the concatenation.
@@ -77,9 +79,12 @@ pub fn render_batch(views: &[&TrainingView], params: &Parameters, ctx: &ShadingC
     let uv: Arc<[[f32; 2]]> = views.iter().flat_map(|v| v.uv.iter().copied()).collect::<Vec<_>>().into();
     let kd = sample_bilinear(params.kd.as_tensor(), &uv)?;
     let ks = sample_bilinear(params.ks.as_tensor(), &uv)?;
-    let mapped = match &params.normal {
-        Some(map) => Some(normal_mapped(views, n, &uv, map, normals)?),
-        None => None,
+    let (mapped, normal_map) = match &params.normal {
+        Some(map) => {
+            let (mapped, at) = normal_mapped(views, n, &uv, map, normals)?;
+            (Some(mapped), Some(at))
+        }
+        None => (None, None),
     };
     let normals = mapped.or_else(|| normals.cloned());
     let normals = normals.as_ref();
@@ -102,13 +107,14 @@ pub fn render_batch(views: &[&TrainingView], params: &Parameters, ctx: &ShadingC
     };
     let rgb = rgb.reshape((n, 1, 3))?;
     let light_buffers = light_buffers.map(|(d, s): (Tensor, Tensor)| -> Result<(Tensor, Tensor)> { Ok((d.reshape((n, 1, 3))?, s.reshape((n, 1, 3))?)) }).transpose()?;
-    Ok(BatchRender { rgb, kd, ks, light_buffers, uv, offsets, normals: normals.cloned() })
+    Ok(BatchRender { rgb, kd, ks, light_buffers, uv, offsets, normals: normals.cloned(), normal_map })
 }
 
 /// The pixels' shading normals through the normal map, [N, 3] on the tape: the map looked up at
 /// the pixels' UVs perturbs `normals` (vertex refinement's) or else the views' own normals, in
-/// the frames of the pixels' triangles (constants of the normals' values).
-fn normal_mapped(views: &[&TrainingView], n: usize, uv: &Arc<[[f32; 2]]>, map: &super::parameters::NormalParameter, normals: Option<&Tensor>) -> Result<Tensor> {
+/// the frames of the pixels' triangles (constants of the normals' values). Also returns the
+/// lookup itself.
+fn normal_mapped(views: &[&TrainingView], n: usize, uv: &Arc<[[f32; 2]]>, map: &super::parameters::NormalParameter, normals: Option<&Tensor>) -> Result<(Tensor, Tensor)> {
     let dev = map.map.as_tensor().device();
     let base = match normals {
         Some(t) => t.clone(),
@@ -122,7 +128,7 @@ fn normal_mapped(views: &[&TrainingView], n: usize, uv: &Arc<[[f32; 2]]>, map: &
     let (t, b) = frames_at(&map.tangents, points);
     let (t, b) = (Tensor::from_vec(t, (n, 3), dev)?, Tensor::from_vec(b, (n, 3), dev)?);
     let m = sample_bilinear(map.map.as_tensor(), uv)?;
-    Ok(perturb_on_tape(&base, &t, &b, &m)?)
+    Ok((perturb_on_tape(&base, &t, &b, &m)?, m))
 }
 
 /// Monte Carlo shading of the batch: (demodulated diffuse light, specular radiance), [N, 3] each,

@@ -5,6 +5,7 @@
 
 use anyhow::Result;
 use candle_core::{Tensor, D};
+use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use crate::color::linear_to_srgb;
@@ -12,7 +13,7 @@ use crate::optim::light_balance::light_white_balance;
 use crate::optim::loss::{image_loss, LossTarget};
 use crate::optim::prior_loss::prior_loss;
 use crate::optim::shading::shading_regularizer;
-use crate::optim::smoothness::{normal_flatness_regularizer, smoothness_regularizer};
+use crate::optim::smoothness::{normal_flatness_regularizer, smoothness_regularizer, JitteredLookups};
 use crate::optim::srgb::srgb_encode;
 use crate::optim::texture::jitter_uv;
 
@@ -59,15 +60,13 @@ fn scalar(t: &Tensor) -> Result<f64> {
 
 /// Builds the loss of `render` (of `views`, in order) and reports its terms.
 pub fn objective(views: &[&TrainingView], render: &BatchRender, params: &Parameters, config: &FitConfig, iteration: usize) -> Result<(Tensor, LossTerms)> {
-    let targets: Vec<&Tensor> = views.iter().map(|v| &v.target).collect();
-    let target_rgba = Tensor::cat(&targets, 0)?;
-    let target = LossTarget::new(&target_rgba)?;
+    let target = LossTarget::cat(&views.iter().map(|v| &v.target).collect::<Vec<_>>())?;
     let image = image_loss(&render.rgb, None, &target)?;
     let mut total = image.clone();
     let mut terms = LossTerms { image: scalar(&image)?, ..Default::default() };
 
     let w = &config.regularizers;
-    let alpha = target_rgba.narrow(D::Minus1, 3, 1)?.flatten_all()?;
+    let alpha = target.alpha.flatten_all()?;
     let normal_map = params.normal.as_ref().filter(|_| config.normal_map);
     // The jittered lookups, drawn only when a term reads them (every pixel, every step).
     let jittered = if normal_map.is_some() || w.kd_smoothness > 0.0 || w.ks_smoothness > 0.0 {
@@ -75,18 +74,19 @@ pub fn objective(views: &[&TrainingView], render: &BatchRender, params: &Paramet
     } else {
         Vec::new().into()
     };
-    if let Some(n) = normal_map {
-        let map = n.map.as_tensor();
-        let smooth = smoothness_regularizer(map, &render.uv, &jittered, &alpha)?.affine(NORMAL_SMOOTHNESS, 0.0)?;
-        let flat = normal_flatness_regularizer(map, &render.uv, &jittered, &alpha)?.affine(NORMAL_FLATNESS, 0.0)?;
+    if let (Some(n), Some(at)) = (normal_map, &render.normal_map) {
+        let lookups = JitteredLookups::reusing(n.map.as_tensor(), at, &jittered)?;
+        let smooth = smoothness_regularizer(&lookups, &alpha)?.affine(NORMAL_SMOOTHNESS, 0.0)?;
+        let flat = normal_flatness_regularizer(&lookups, &alpha)?.affine(NORMAL_FLATNESS, 0.0)?;
         let t = (smooth + flat)?;
         terms.normal = scalar(&t)?;
         total = (total + t)?;
     }
     if w.kd_smoothness > 0.0 || w.ks_smoothness > 0.0 {
-        let uv = &render.uv;
-        let mut smooth = smoothness_regularizer(params.kd.as_tensor(), uv, &jittered, &alpha)?.affine(w.kd_smoothness, 0.0)?;
-        smooth = (smooth + smoothness_regularizer(params.ks.as_tensor(), uv, &jittered, &alpha)?.affine(w.ks_smoothness, 0.0)?)?;
+        // The unjittered side is the render's own lookup.
+        let kd = JitteredLookups::reusing(params.kd.as_tensor(), &render.kd, &jittered)?;
+        let ks = JitteredLookups::reusing(params.ks.as_tensor(), &render.ks, &jittered)?;
+        let smooth = (smoothness_regularizer(&kd, &alpha)?.affine(w.kd_smoothness, 0.0)? + smoothness_regularizer(&ks, &alpha)?.affine(w.ks_smoothness, 0.0)?)?;
         terms.smoothness = scalar(&smooth)?;
         total = (total + smooth)?;
     }
@@ -97,7 +97,7 @@ pub fn objective(views: &[&TrainingView], render: &BatchRender, params: &Paramet
     }
     if let Some((diffuse, specular)) = &render.light_buffers {
         if w.shading_diffuse > 0.0 || w.shading_specular > 0.0 {
-            let s = shading_regularizer(diffuse, specular, &target_rgba, w.shading_diffuse, w.shading_specular)?;
+            let s = shading_regularizer(diffuse, specular, &target, w.shading_diffuse, w.shading_specular)?;
             terms.shading = scalar(&s)?;
             total = (total + s)?;
         }
@@ -140,7 +140,7 @@ pub fn objective(views: &[&TrainingView], render: &BatchRender, params: &Paramet
         }
     }
     terms.total = scalar(&total)?;
-    terms.psnr = batch_psnr(&render.rgb, &target_rgba)?;
+    terms.psnr = batch_psnr(&render.rgb, &target.rgba)?;
     Ok((total, terms))
 }
 
@@ -149,16 +149,26 @@ pub fn objective(views: &[&TrainingView], render: &BatchRender, params: &Paramet
 pub fn batch_psnr(rgb: &Tensor, target: &Tensor) -> Result<f64> {
     let r = rgb.detach().flatten_all()?.to_dtype(candle_core::DType::F32)?.to_vec1::<f32>()?;
     let t = target.flatten_all()?.to_dtype(candle_core::DType::F32)?.to_vec1::<f32>()?;
-    let (mut sum, mut count) = (0.0f64, 0usize);
-    for (p, q) in r.chunks_exact(3).zip(t.chunks_exact(4)) {
-        if q[3] <= 0.8 {
-            continue;
-        }
-        for c in 0..3 {
-            let d = linear_to_srgb(p[c].clamp(0.0, 1.0)) as f64 - linear_to_srgb(q[c].clamp(0.0, 1.0)) as f64;
-            sum += d * d;
-        }
-        count += 3;
-    }
+    // Fixed chunks summed in order: the same figure on any number of threads.
+    const PIXELS_PER_CHUNK: usize = 4096;
+    let parts: Vec<(f64, usize)> = r
+        .par_chunks(3 * PIXELS_PER_CHUNK)
+        .zip(t.par_chunks(4 * PIXELS_PER_CHUNK))
+        .map(|(r, t)| {
+            let (mut sum, mut count) = (0.0f64, 0usize);
+            for (p, q) in r.chunks_exact(3).zip(t.chunks_exact(4)) {
+                if q[3] <= 0.8 {
+                    continue;
+                }
+                for c in 0..3 {
+                    let d = linear_to_srgb(p[c].clamp(0.0, 1.0)) as f64 - linear_to_srgb(q[c].clamp(0.0, 1.0)) as f64;
+                    sum += d * d;
+                }
+                count += 3;
+            }
+            (sum, count)
+        })
+        .collect();
+    let (sum, count) = parts.iter().fold((0.0, 0), |(s, n), &(ps, pn)| (s + ps, n + pn));
     Ok(if count == 0 { f64::NAN } else { -10.0 * (sum / count as f64).log10() })
 }

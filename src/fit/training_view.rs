@@ -13,6 +13,7 @@ use glam::Vec3;
 use crate::geometry::bvh::Bvh;
 use crate::geometry::Mesh;
 use crate::image::Image;
+use crate::optim::loss::LossTarget;
 use crate::render::denoise::DenoiseGuides;
 use crate::render::gbuffer::{GBuffer, Surfel};
 use crate::scene::dataset::{self, View};
@@ -35,8 +36,8 @@ pub struct TrainingView {
     /// Camera position (outgoing directions).
     pub origin: Vec3,
     /// Target linear RGB and alpha at the covered pixels, [n, 1, 4] (a column "image" so the
-    /// image loss applies unchanged).
-    pub target: Tensor,
+    /// image loss applies unchanged), with the loss's constants of it computed once.
+    pub target: LossTarget,
     /// Prior labels at the covered pixels, when this view has them.
     pub labels: Option<PixelLabels>,
     /// Pixels of the target whose alpha is at least `view_screening::MASK_THRESHOLD` (0: the object is
@@ -100,7 +101,7 @@ impl TrainingView {
             surfels,
             uv: uv.into(),
             origin: gbuf.origin,
-            target: Tensor::from_vec(target, (n, 1, 4), &Device::Cpu)?,
+            target: LossTarget::new(&Tensor::from_vec(target, (n, 1, 4), &Device::Cpu)?)?,
             labels: None,
             mask_pixels,
             silhouette_disagreement,

@@ -16,26 +16,47 @@ pub fn log_srgb(x: &Tensor) -> Result<Tensor> {
     srgb_encode(&(x.clamp(0.0, HDR_CLAMP)? + 1.0)?.log()?)
 }
 
-/// A target view prepared once: linear RGB and alpha as [H, W, 3] and [H, W, 1], plus its tone map
-/// (constant, so it is computed outside the tape).
+/// A target prepared once for every term that compares a render with it: linear RGB and alpha as
+/// [.., 3] and [.., 1], and the constants of the loss terms, computed outside the tape (a
+/// training view keeps its own, so no step recomputes them).
+#[derive(Clone, Debug)]
 pub struct LossTarget {
+    /// The target as given, linear RGBA [.., 4].
+    pub rgba: Tensor,
     pub alpha: Tensor,
-    pub masked_rgb: Tensor,
+    /// T(rgb·α), [.., 3]: what the image loss compares the render's tone map with.
     tone_mapped: Tensor,
+    /// T(max_c(rgb)·α), [.., 1]: the shading regulariser's reference (`optim::shading`).
+    pub value_tone_mapped: Tensor,
 }
 
 impl LossTarget {
-    /// `rgba`: [H, W, 4] linear RGB (already linearised from sRGB PNG) and alpha in [0, 1].
+    /// `rgba`: [.., 4] linear RGB (already linearised from sRGB PNG) and alpha in [0, 1]; an image
+    /// [H, W, 4] or a column of pixels [N, 1, 4].
     pub fn new(rgba: &Tensor) -> Result<Self> {
-        let (_, _, c) = rgba.dims3()?;
-        if c != 4 {
+        if rgba.rank() != 3 || rgba.dim(D::Minus1)? != 4 {
             return Err(candle_core::Error::Msg(format!("loss target: expected [H, W, 4] RGBA, got {:?}", rgba.dims())));
         }
         let rgba = rgba.detach();
         let alpha = rgba.narrow(D::Minus1, 3, 1)?;
-        let masked_rgb = rgba.narrow(D::Minus1, 0, 3)?.broadcast_mul(&alpha)?;
-        let tone_mapped = log_srgb(&masked_rgb)?.detach();
-        Ok(LossTarget { alpha, masked_rgb, tone_mapped })
+        let rgb = rgba.narrow(D::Minus1, 0, 3)?;
+        let tone_mapped = log_srgb(&rgb.broadcast_mul(&alpha)?)?.detach();
+        let value_tone_mapped = log_srgb(&(rgb.max_keepdim(D::Minus1)? * &alpha)?)?.detach();
+        Ok(LossTarget { rgba, alpha, tone_mapped, value_tone_mapped })
+    }
+
+    /// Several column targets [Nᵢ, 1, 4] as one, rows in order (a batch of views).
+    pub fn cat(parts: &[&LossTarget]) -> Result<Self> {
+        if let [one] = parts {
+            return Ok((*one).clone());
+        }
+        let cat = |f: fn(&LossTarget) -> &Tensor| Tensor::cat(&parts.iter().map(|p| f(p)).collect::<Vec<_>>(), 0);
+        Ok(LossTarget {
+            rgba: cat(|p| &p.rgba)?,
+            alpha: cat(|p| &p.alpha)?,
+            tone_mapped: cat(|p| &p.tone_mapped)?,
+            value_tone_mapped: cat(|p| &p.value_tone_mapped)?,
+        })
     }
 }
 
@@ -43,12 +64,12 @@ impl LossTarget {
 /// `render_rgb`: [H, W, 3] linear HDR; `render_alpha`: [H, W, 1] coverage, when it is rendered
 /// differentiably (with a fixed G-buffer it is constant and the term can be skipped with `None`).
 pub fn image_loss(render_rgb: &Tensor, render_alpha: Option<&Tensor>, target: &LossTarget) -> Result<Tensor> {
-    let shape_ok = render_rgb.dims() == target.masked_rgb.dims();
+    let shape_ok = render_rgb.dims() == target.tone_mapped.dims();
     if !shape_ok {
         return Err(candle_core::Error::Msg(format!(
             "image loss: render {:?} does not match target {:?}",
             render_rgb.dims(),
-            target.masked_rgb.dims()
+            target.tone_mapped.dims()
         )));
     }
     let masked = render_rgb.broadcast_mul(&target.alpha.to_dtype(render_rgb.dtype())?)?;
@@ -77,6 +98,20 @@ mod tests {
         let l1 = ((t(0.5) - t(0.25)).abs() + (t(1.0) - t(0.0)).abs() + (t(0.0) - t(2.0)).abs()) / 3.0;
         let want = l1 + 0.4 * 0.4;
         assert!((got - want).abs() < 1e-5, "{got} vs {want}");
+        Ok(())
+    }
+
+    #[test]
+    fn a_batch_of_targets_equals_the_target_of_the_batch() -> Result<()> {
+        let dev = Device::Cpu;
+        let (a, b) = (Tensor::rand(0f32, 3.0, (5, 1, 4), &dev)?, Tensor::rand(0f32, 3.0, (7, 1, 4), &dev)?);
+        let (ta, tb) = (LossTarget::new(&a)?, LossTarget::new(&b)?);
+        let joined = LossTarget::cat(&[&ta, &tb])?;
+        let whole = LossTarget::new(&Tensor::cat(&[&a, &b], 0)?)?;
+        let same = |x: &Tensor, y: &Tensor| -> Result<bool> { Ok(x.dims() == y.dims() && x.flatten_all()?.to_vec1::<f32>()? == y.flatten_all()?.to_vec1::<f32>()?) };
+        for (x, y) in [(&joined.rgba, &whole.rgba), (&joined.alpha, &whole.alpha), (&joined.tone_mapped, &whole.tone_mapped), (&joined.value_tone_mapped, &whole.value_tone_mapped)] {
+            assert!(same(x, y)?);
+        }
         Ok(())
     }
 

@@ -11,42 +11,57 @@ use candle_core::{Result, Tensor, D};
 
 use super::texture::sample_bilinear;
 
+/// A texture looked up at the covered pixels' UVs and at their jittered copies, [N, C] each: what
+/// the regularisers below compare.
+pub struct JitteredLookups {
+    pub at: Tensor,
+    pub jittered: Tensor,
+}
+
+impl JitteredLookups {
+    /// `at`: `texture` already looked up at the pixels' UVs (the render's own lookup, so the step
+    /// looks each texture up, and scatters its gradient, once less); only the jittered copies
+    /// `uv_jitter` are looked up here.
+    pub fn reusing(texture: &Tensor, at: &Tensor, uv_jitter: &Arc<[[f32; 2]]>) -> Result<Self> {
+        if at.dims().first() != Some(&uv_jitter.len()) {
+            return Err(candle_core::Error::Msg(format!("jittered lookups: {} lookups, {} jittered copies", at.dims().first().copied().unwrap_or(0), uv_jitter.len())));
+        }
+        Ok(JitteredLookups { at: at.clone(), jittered: sample_bilinear(texture, uv_jitter)? })
+    }
+
+    /// Both lookups made here.
+    pub fn look_up(texture: &Tensor, uv: &Arc<[[f32; 2]]>, uv_jitter: &Arc<[[f32; 2]]>) -> Result<Self> {
+        Self::reusing(texture, &sample_bilinear(texture, uv)?, uv_jitter)
+    }
+
+    fn check(&self, what: &str, weight: &Tensor) -> Result<()> {
+        let n = self.at.dims().first().copied().unwrap_or(0);
+        if weight.dims() != [n] {
+            return Err(candle_core::Error::Msg(format!("{what}: {n} lookups, weights {:?} (must be [{n}])", weight.dims())));
+        }
+        Ok(())
+    }
+}
+
 /// mean_n( w_n · mean_c |tex(uv_n) − tex(uv_jitter_n)| ).
-/// `texture`: [H, W, C] on the tape; `uv`, `uv_jitter`: the lookups and their jittered copies (see
-/// `texture::jitter_uv`); `weight`: [N] per-lookup weights (e.g. ground-truth alpha).
-pub fn smoothness_regularizer(
-    texture: &Tensor,
-    uv: &Arc<[[f32; 2]]>,
-    uv_jitter: &Arc<[[f32; 2]]>,
-    weight: &Tensor,
-) -> Result<Tensor> {
-    let (a, b) = jittered_lookups("smoothness regulariser", texture, uv, uv_jitter, weight)?;
-    weighted_mean(&(a - b)?.abs()?.mean(D::Minus1)?, weight)
+/// `lookups`: a texture [H, W, C] on the tape, looked up at the pixels and at their jittered
+/// copies (see `texture::jitter_uv`); `weight`: [N] per-lookup weights (e.g. ground-truth alpha).
+pub fn smoothness_regularizer(lookups: &JitteredLookups, weight: &Tensor) -> Result<Tensor> {
+    lookups.check("smoothness regulariser", weight)?;
+    weighted_mean(&(&lookups.at - &lookups.jittered)?.abs()?.mean(D::Minus1)?, weight)
 }
 
 /// The normal map's flatness (NVDiffRecMC's perturbed-normal term):
-/// mean_n( w_n · (1 − ẑ · normalize(m(uv_n) + m(uv_jitter_n))) ) of a tangent-space map `map`
-/// [H, W, 3]. It is 1 − cos of the tilt of the two lookups' mean direction: the map is pulled
-/// toward (0, 0, 1), and two neighbours that tilt opposite ways cost nothing extra.
-pub fn normal_flatness_regularizer(map: &Tensor, uv: &Arc<[[f32; 2]]>, uv_jitter: &Arc<[[f32; 2]]>, weight: &Tensor) -> Result<Tensor> {
-    let (a, b) = jittered_lookups("normal flatness", map, uv, uv_jitter, weight)?;
-    let sum = (a + b)?;
+/// mean_n( w_n · (1 − ẑ · normalize(m(uv_n) + m(uv_jitter_n))) ) of a tangent-space map m
+/// [H, W, 3] looked up as `lookups`. It is 1 − cos of the tilt of the two lookups' mean
+/// direction: the map is pulled toward (0, 0, 1), and two neighbours that tilt opposite ways cost
+/// nothing extra.
+pub fn normal_flatness_regularizer(lookups: &JitteredLookups, weight: &Tensor) -> Result<Tensor> {
+    lookups.check("normal flatness", weight)?;
+    let sum = (&lookups.at + &lookups.jittered)?;
     let len = sum.sqr()?.sum(D::Minus1)?.affine(1.0, 1e-20)?.sqrt()?;
     let z = sum.narrow(D::Minus1, 2, 1)?.squeeze(D::Minus1)?;
     weighted_mean(&(z / len)?.affine(-1.0, 1.0)?, weight)
-}
-
-/// The texture at the lookups and at their jittered copies, [N, C] each, after checking the sizes.
-fn jittered_lookups(what: &str, texture: &Tensor, uv: &Arc<[[f32; 2]]>, uv_jitter: &Arc<[[f32; 2]]>, weight: &Tensor) -> Result<(Tensor, Tensor)> {
-    if uv.len() != uv_jitter.len() || weight.dims() != [uv.len()] {
-        return Err(candle_core::Error::Msg(format!(
-            "{what}: {} lookups, {} jittered, weights {:?} (must all be N)",
-            uv.len(),
-            uv_jitter.len(),
-            weight.dims()
-        )));
-    }
-    Ok((sample_bilinear(texture, uv)?, sample_bilinear(texture, uv_jitter)?))
 }
 
 /// mean_n( w_n · per_lookup_n ).
@@ -79,10 +94,10 @@ mod tests {
         let uvj: Arc<[[f32; 2]]> = vec![[0.35, 0.4], [0.6, 0.5]].into();
         let w = Tensor::new(&[1.0f32, 1.0], &dev)?;
         let flat = Tensor::ones((8, 8, 3), DType::F32, &dev)?;
-        assert!(smoothness_regularizer(&flat, &uv, &uvj, &w)?.to_scalar::<f32>()?.abs() < 1e-6);
+        assert!(smoothness_regularizer(&JitteredLookups::look_up(&flat, &uv, &uvj)?, &w)?.to_scalar::<f32>()?.abs() < 1e-6);
         // Texture = column index: a shift of 0.05 in u on an 8-wide texture changes it by 0.4.
         let ramp = Tensor::arange(0f32, 8.0, &dev)?.reshape((1, 8, 1))?.broadcast_as((8, 8, 3))?.contiguous()?;
-        let got = smoothness_regularizer(&ramp, &uv, &uvj, &w)?.to_scalar::<f32>()?;
+        let got = smoothness_regularizer(&JitteredLookups::look_up(&ramp, &uv, &uvj)?, &w)?.to_scalar::<f32>()?;
         assert!((got - 0.2).abs() < 1e-5, "{got}");
         Ok(())
     }
@@ -92,7 +107,7 @@ mod tests {
         let dev = Device::Cpu;
         let tex = Tensor::rand(0f64, 1.0, (6, 7, 3), &dev)?;
         let (uv, uvj, w) = random_lookups(40, 9, &dev)?;
-        check_gradient(|x| smoothness_regularizer(&x[0], &uv, &uvj, &w), &[tex], 1e-6, 1e-2)?;
+        check_gradient(|x| smoothness_regularizer(&JitteredLookups::look_up(&x[0], &uv, &uvj)?, &w), &[tex], 1e-6, 1e-2)?;
         Ok(())
     }
 
@@ -103,9 +118,9 @@ mod tests {
         let uvj: Arc<[[f32; 2]]> = vec![[0.31, 0.42], [0.69, 0.21]].into();
         let w = Tensor::ones(2, DType::F32, &dev)?;
         let uniform = |v: [f32; 3]| -> Result<Tensor> { Tensor::new(&v, &dev)?.reshape((1, 1, 3))?.broadcast_as((4, 4, 3))?.contiguous() };
-        assert!(normal_flatness_regularizer(&uniform([0.0, 0.0, 1.0])?, &uv, &uvj, &w)?.to_scalar::<f32>()?.abs() < 1e-7);
+        assert!(normal_flatness_regularizer(&JitteredLookups::look_up(&uniform([0.0, 0.0, 1.0])?, &uv, &uvj)?, &w)?.to_scalar::<f32>()?.abs() < 1e-7);
         let theta = 0.3f32;
-        let got = normal_flatness_regularizer(&uniform([theta.sin(), 0.0, theta.cos()])?, &uv, &uvj, &w)?.to_scalar::<f32>()?;
+        let got = normal_flatness_regularizer(&JitteredLookups::look_up(&uniform([theta.sin(), 0.0, theta.cos()])?, &uv, &uvj)?, &w)?.to_scalar::<f32>()?;
         assert!((got - (1.0 - theta.cos())).abs() < 1e-6, "{got}");
         Ok(())
     }
@@ -116,7 +131,7 @@ mod tests {
         let up = Tensor::new(&[0f64, 0.0, 1.0], &dev)?.reshape((1, 1, 3))?.broadcast_as((5, 6, 3))?;
         let map = (Tensor::rand(-0.5f64, 0.5, (5, 6, 3), &dev)? + up)?;
         let (uv, uvj, w) = random_lookups(30, 3, &dev)?;
-        check_gradient(|x| normal_flatness_regularizer(&x[0], &uv, &uvj, &w), &[map], 1e-6, 1e-2)?;
+        check_gradient(|x| normal_flatness_regularizer(&JitteredLookups::look_up(&x[0], &uv, &uvj)?, &w), &[map], 1e-6, 1e-2)?;
         Ok(())
     }
 }
