@@ -7,7 +7,7 @@ use candle_core::{DType, Device, Tensor, Var};
 use glam::Vec3;
 use reconstruct::optim::gradcheck::{check_gradient, check_gradient_with, GradCheckOptions};
 use reconstruct::optim::{
-    image_loss, jitter_uv, sample_bilinear, shading_regularizer, smoothness_regularizer, JitteredLookups, srgb_encode, LossTarget,
+    image_loss, jitter_uv, sample_bilinear, shading_regularizer, smoothness_regularizer, JitteredLookups, JitteredUv, srgb_encode, LossTarget,
     UniformLaplacian,
 };
 use reconstruct::render::denoise::{BilateralParams, CrossBilateral, DenoiseGuides};
@@ -149,7 +149,7 @@ fn smoothness_regularizer_across_the_seam() -> anyhow::Result<()> {
     let uvj = jitter_uv(&uv, 0.02, 13);
     let uv: Arc<[[f32; 2]]> = uv.into();
     let wts = rand_tensor(14, 0.0, 1.0, &[60]);
-    check_gradient(|x| smoothness_regularizer(&JitteredLookups::look_up(&x[0], &uv, &uvj)?, &wts), &[tex], EPS, TOL)?;
+    check_gradient(|x| smoothness_regularizer(&JitteredLookups::look_up(&x[0], &JitteredUv::from_pairs(&uv, &uvj)?)?, &wts), &[tex], EPS, TOL)?;
     Ok(())
 }
 

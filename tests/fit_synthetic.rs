@@ -179,7 +179,7 @@ fn mean_view_psnr(fit: &Fit) -> Result<f64> {
     use reconstruct::fit::objective::batch_psnr;
     let mut total = 0.0;
     for v in &fit.views {
-        let r = render_batch(&[v], &fit.params, &fit.ctx, 0, None)?;
+        let r = render_batch(&[v], &fit.params, &fit.ctx, 0, None, None)?;
         total += batch_psnr(&r.rgb, &v.target.rgba)?;
     }
     Ok(total / fit.views.len() as f64)
@@ -456,7 +456,7 @@ fn mean_normal_angle(views: &[TrainingView], a: &MaterialTextures, b: &MaterialT
 /// steps of the fit's own render, loss and update; the mean shading-normal error before and after.
 fn fit_map_only(s: &Scene, cfg: &FitConfig, views: Vec<TrainingView>, iterations: usize) -> Result<(f64, f64)> {
     use reconstruct::fit::batch_render::render_batch;
-    use reconstruct::fit::objective::objective;
+    use reconstruct::fit::objective::{objective, smoothness_jitter_seed};
     use reconstruct::material::normal_map::{NORMAL_MAX, NORMAL_MIN};
     use reconstruct::optim::adam::{Adam, GroupConfig, LrSchedule};
     let start = MaterialTextures { normal: None, ..s.truth.clone() };
@@ -467,7 +467,7 @@ fn fit_map_only(s: &Scene, cfg: &FitConfig, views: Vec<TrainingView>, iterations
     let before = mean_normal_angle(&fit.views, &fit.params.textures()?, &s.truth);
     for it in 0..iterations {
         let batch: Vec<&TrainingView> = fit.batch_for(it).into_iter().map(|i| &fit.views[i]).collect();
-        let render = render_batch(&batch, &fit.params, &fit.ctx, it as u64, None)?;
+        let render = render_batch(&batch, &fit.params, &fit.ctx, it as u64, None, smoothness_jitter_seed(cfg, &fit.params, it))?;
         let (loss, _) = objective(&batch, &render, &fit.params, cfg, it)?;
         adam.step(&loss.backward()?)?;
         fit.params.normal.as_ref().expect("map").normalize()?;

@@ -12,6 +12,7 @@ use crate::geometry::bvh::Bvh;
 use crate::geometry::Mesh;
 use crate::light::brdf_lut::BrdfLut;
 use crate::material::normal_map::{frames_at, perturb_on_tape};
+use crate::optim::smoothness::{JitteredLookups, JitteredUv, SMOOTHNESS_JITTER};
 use crate::optim::texture::sample_bilinear;
 use crate::render::denoise::{BilateralParams, CrossBilateral};
 use crate::render::effects::Effects;
@@ -56,8 +57,17 @@ pub struct BatchRender {
     /// The shading normals [N, 3] on the tape, when they are parameters (the normal map, the
     /// vertex refinement); `None` when they are the mesh's fixed ones.
     pub normals: Option<Tensor>,
-    /// The normal map looked up at each row [N, 3], when there is one (its regularisers reuse it).
-    pub normal_map: Option<Tensor>,
+    /// The textures at the rows' UVs and at their jittered copies, when the step asked for them
+    /// (the smoothness regularisers read them).
+    pub jittered: Option<SmoothnessLookups>,
+}
+
+/// kd, ks and the normal map (when there is one) looked up at the rows' UVs and at their jittered
+/// copies; the `at` sides are the render's own lookups.
+pub struct SmoothnessLookups {
+    pub kd: JitteredLookups,
+    pub ks: JitteredLookups,
+    pub normal_map: Option<JitteredLookups>,
 }
 
 /// Row offsets of the views' pixels in the concatenation.
@@ -72,19 +82,36 @@ pub fn row_offsets(views: &[&TrainingView]) -> Vec<usize> {
 /// Renders `views` with the current `params`. `iteration` reseeds the Monte Carlo samples.
 /// `normals` [N, 3], when given, are the covered pixels' shading normals as a function of the
 /// vertices (`fit::vertex_refinement`; Monte Carlo only). A normal map in `params` perturbs them
-/// (or the views' own normals) on the tape.
-pub fn render_batch(views: &[&TrainingView], params: &Parameters, ctx: &ShadingContext, iteration: u64, normals: Option<&Tensor>) -> Result<BatchRender> {
+/// (or the views' own normals) on the tape. `jitter_seed`, when given, also looks the textures up
+/// at UVs jittered from that stream (`objective::smoothness_jitter_seed` says when a step needs
+/// them), in the same operator as the render's own lookups.
+pub fn render_batch(views: &[&TrainingView], params: &Parameters, ctx: &ShadingContext, iteration: u64, normals: Option<&Tensor>, jitter_seed: Option<u64>) -> Result<BatchRender> {
     let offsets = row_offsets(views);
     let n = offsets[offsets.len() - 1];
     let uv: Arc<[[f32; 2]]> = views.iter().flat_map(|v| v.uv.iter().copied()).collect::<Vec<_>>().into();
-    let kd = sample_bilinear(params.kd.as_tensor(), &uv)?;
-    let ks = sample_bilinear(params.ks.as_tensor(), &uv)?;
-    let (mapped, normal_map) = match &params.normal {
+    let jittered_uv = jitter_seed.map(|seed| JitteredUv::new(&uv, SMOOTHNESS_JITTER, seed));
+    // A texture at the rows' UVs, and at their jittered copies too when asked.
+    let look_up = |texture: &Tensor| -> Result<(Tensor, Option<JitteredLookups>)> {
+        Ok(match &jittered_uv {
+            Some(j) => {
+                let both = JitteredLookups::look_up(texture, j)?;
+                (both.at.clone(), Some(both))
+            }
+            None => (sample_bilinear(texture, &uv)?, None),
+        })
+    };
+    let (kd, kd_jittered) = look_up(params.kd.as_tensor())?;
+    let (ks, ks_jittered) = look_up(params.ks.as_tensor())?;
+    let (mapped, map_jittered) = match &params.normal {
         Some(map) => {
-            let (mapped, at) = normal_mapped(views, n, &uv, map, normals)?;
-            (Some(mapped), Some(at))
+            let (m, jittered) = look_up(map.map.as_tensor())?;
+            (Some(normal_mapped(views, n, map, &m, normals)?), jittered)
         }
         None => (None, None),
+    };
+    let jittered = match (kd_jittered, ks_jittered) {
+        (Some(kd), Some(ks)) => Some(SmoothnessLookups { kd, ks, normal_map: map_jittered }),
+        _ => None,
     };
     let normals = mapped.or_else(|| normals.cloned());
     let normals = normals.as_ref();
@@ -107,14 +134,13 @@ pub fn render_batch(views: &[&TrainingView], params: &Parameters, ctx: &ShadingC
     };
     let rgb = rgb.reshape((n, 1, 3))?;
     let light_buffers = light_buffers.map(|(d, s): (Tensor, Tensor)| -> Result<(Tensor, Tensor)> { Ok((d.reshape((n, 1, 3))?, s.reshape((n, 1, 3))?)) }).transpose()?;
-    Ok(BatchRender { rgb, kd, ks, light_buffers, uv, offsets, normals: normals.cloned(), normal_map })
+    Ok(BatchRender { rgb, kd, ks, light_buffers, uv, offsets, normals: normals.cloned(), jittered })
 }
 
 /// The pixels' shading normals through the normal map, [N, 3] on the tape: the map looked up at
-/// the pixels' UVs perturbs `normals` (vertex refinement's) or else the views' own normals, in
-/// the frames of the pixels' triangles (constants of the normals' values). Also returns the
-/// lookup itself.
-fn normal_mapped(views: &[&TrainingView], n: usize, uv: &Arc<[[f32; 2]]>, map: &super::parameters::NormalParameter, normals: Option<&Tensor>) -> Result<(Tensor, Tensor)> {
+/// the pixels' UVs (`m`) perturbs `normals` (vertex refinement's) or else the views' own normals,
+/// in the frames of the pixels' triangles (constants of the normals' values).
+fn normal_mapped(views: &[&TrainingView], n: usize, map: &super::parameters::NormalParameter, m: &Tensor, normals: Option<&Tensor>) -> Result<Tensor> {
     let dev = map.map.as_tensor().device();
     let base = match normals {
         Some(t) => t.clone(),
@@ -127,8 +153,7 @@ fn normal_mapped(views: &[&TrainingView], n: usize, uv: &Arc<[[f32; 2]]>, map: &
     let points = views.iter().flat_map(|v| v.surfels.iter()).zip(values.chunks_exact(3)).map(|(s, nv)| (s.triangle, s.bary3(), glam::Vec3::from_slice(nv)));
     let (t, b) = frames_at(&map.tangents, points);
     let (t, b) = (Tensor::from_vec(t, (n, 3), dev)?, Tensor::from_vec(b, (n, 3), dev)?);
-    let m = sample_bilinear(map.map.as_tensor(), uv)?;
-    Ok((perturb_on_tape(&base, &t, &b, &m)?, m))
+    Ok(perturb_on_tape(&base, &t, &b, m)?)
 }
 
 /// Monte Carlo shading of the batch: (demodulated diffuse light, specular radiance), [N, 3] each,

@@ -26,7 +26,7 @@ use super::batch_render::{render_batch, ShadingContext};
 use super::checkpoint::{self, Progress};
 use super::config::FitConfig;
 use super::history::{trailing_mean, IterationRecord, StepPhases};
-use super::objective::objective;
+use super::objective::{objective, smoothness_jitter_seed};
 use super::settings_diff::differences;
 use super::parameters::{NormalParameter, Parameters, NORMAL_NAME};
 use super::training_view::TrainingView;
@@ -177,7 +177,8 @@ impl Fit {
         };
         let refine_step = self.refine.as_ref().map(|r| r.begin_step(&batch)).transpose()?;
         let phase = Instant::now();
-        let render = render_batch(&batch, &self.params, &self.ctx, it as u64, refine_step.as_ref().map(|s| &s.normals))?;
+        let jitter = smoothness_jitter_seed(&self.config, &self.params, it);
+        let render = render_batch(&batch, &self.params, &self.ctx, it as u64, refine_step.as_ref().map(|s| &s.normals), jitter)?;
         let (render_s, phase) = (phase.elapsed().as_secs_f64(), Instant::now());
         let (loss, terms) = objective(&batch, &render, &self.params, &self.config, it)?;
         let (loss_s, phase) = (phase.elapsed().as_secs_f64(), Instant::now());

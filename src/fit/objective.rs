@@ -13,19 +13,13 @@ use crate::optim::light_balance::light_white_balance;
 use crate::optim::loss::{image_loss, LossTarget};
 use crate::optim::prior_loss::prior_loss;
 use crate::optim::shading::shading_regularizer;
-use crate::optim::smoothness::{normal_flatness_regularizer, smoothness_regularizer, JitteredLookups};
+use crate::optim::smoothness::{normal_flatness_regularizer, smoothness_regularizer};
 use crate::optim::srgb::srgb_encode;
-use crate::optim::texture::jitter_uv;
 
 use super::batch_render::BatchRender;
 use super::config::FitConfig;
 use super::parameters::Parameters;
 use super::training_view::TrainingView;
-
-/// Standard deviation of the smoothness lookups' jitter, in UV units (per axis). NVDiffRecMC uses
-/// 0.005 too, but jitters its rendered kd/ks buffers in screen coordinates; here the textures are
-/// looked up at jittered UVs (docs/model.md, *Differences from NVDiffRecMC*).
-pub const SMOOTHNESS_JITTER: f32 = 0.005;
 
 /// Weight of the normal map's smoothness (the kd/ks term's form on the map's texels):
 /// NVDiffRecMC's `lambda_nrm`, like the kd and ks weights, which are theirs too.
@@ -58,7 +52,16 @@ fn scalar(t: &Tensor) -> Result<f64> {
     Ok(t.to_dtype(candle_core::DType::F64)?.to_scalar::<f64>()?)
 }
 
-/// Builds the loss of `render` (of `views`, in order) and reports its terms.
+/// The seed of step `iteration`'s jittered texture lookups when one of its terms reads them (the
+/// kd/ks smoothness, the normal map's terms), for `render_batch`; `None` when none does.
+pub fn smoothness_jitter_seed(config: &FitConfig, params: &Parameters, iteration: usize) -> Option<u64> {
+    let w = &config.regularizers;
+    let reads = (params.normal.is_some() && config.normal_map) || w.kd_smoothness > 0.0 || w.ks_smoothness > 0.0;
+    reads.then(|| config.seed ^ (iteration as u64).wrapping_mul(0x9e37_79b9))
+}
+
+/// Builds the loss of `render` (of `views`, in order) and reports its terms. `render` must carry
+/// the jittered lookups when [`smoothness_jitter_seed`] asks for them.
 pub fn objective(views: &[&TrainingView], render: &BatchRender, params: &Parameters, config: &FitConfig, iteration: usize) -> Result<(Tensor, LossTerms)> {
     let target = LossTarget::cat(&views.iter().map(|v| &v.target).collect::<Vec<_>>())?;
     let image = image_loss(&render.rgb, None, &target)?;
@@ -68,25 +71,20 @@ pub fn objective(views: &[&TrainingView], render: &BatchRender, params: &Paramet
     let w = &config.regularizers;
     let alpha = target.alpha.flatten_all()?;
     let normal_map = params.normal.as_ref().filter(|_| config.normal_map);
-    // The jittered lookups, drawn only when a term reads them (every pixel, every step).
-    let jittered = if normal_map.is_some() || w.kd_smoothness > 0.0 || w.ks_smoothness > 0.0 {
-        jitter_uv(&render.uv, SMOOTHNESS_JITTER, config.seed ^ (iteration as u64).wrapping_mul(0x9e37_79b9))
-    } else {
-        Vec::new().into()
+    let smoothness_lookups = || {
+        render.jittered.as_ref().ok_or_else(|| anyhow::anyhow!("the smoothness terms need the render's jittered lookups (render_batch with objective::smoothness_jitter_seed)"))
     };
-    if let (Some(n), Some(at)) = (normal_map, &render.normal_map) {
-        let lookups = JitteredLookups::reusing(n.map.as_tensor(), at, &jittered)?;
-        let smooth = smoothness_regularizer(&lookups, &alpha)?.affine(NORMAL_SMOOTHNESS, 0.0)?;
-        let flat = normal_flatness_regularizer(&lookups, &alpha)?.affine(NORMAL_FLATNESS, 0.0)?;
+    if normal_map.is_some() {
+        let lookups = smoothness_lookups()?.normal_map.as_ref().ok_or_else(|| anyhow::anyhow!("the normal map's terms need its jittered lookups"))?;
+        let smooth = smoothness_regularizer(lookups, &alpha)?.affine(NORMAL_SMOOTHNESS, 0.0)?;
+        let flat = normal_flatness_regularizer(lookups, &alpha)?.affine(NORMAL_FLATNESS, 0.0)?;
         let t = (smooth + flat)?;
         terms.normal = scalar(&t)?;
         total = (total + t)?;
     }
     if w.kd_smoothness > 0.0 || w.ks_smoothness > 0.0 {
-        // The unjittered side is the render's own lookup.
-        let kd = JitteredLookups::reusing(params.kd.as_tensor(), &render.kd, &jittered)?;
-        let ks = JitteredLookups::reusing(params.ks.as_tensor(), &render.ks, &jittered)?;
-        let smooth = (smoothness_regularizer(&kd, &alpha)?.affine(w.kd_smoothness, 0.0)? + smoothness_regularizer(&ks, &alpha)?.affine(w.ks_smoothness, 0.0)?)?;
+        let lookups = smoothness_lookups()?;
+        let smooth = (smoothness_regularizer(&lookups.kd, &alpha)?.affine(w.kd_smoothness, 0.0)? + smoothness_regularizer(&lookups.ks, &alpha)?.affine(w.ks_smoothness, 0.0)?)?;
         terms.smoothness = scalar(&smooth)?;
         total = (total + smooth)?;
     }

@@ -27,7 +27,7 @@ pub use loss::{image_loss, log_srgb, LossTarget};
 pub use mip::{build_pyramid, sample_trilinear, MipLevels};
 pub use prior_loss::prior_loss;
 pub use shading::shading_regularizer;
-pub use smoothness::{smoothness_regularizer, JitteredLookups};
+pub use smoothness::{smoothness_regularizer, JitteredLookups, JitteredUv};
 pub use srgb::srgb_encode;
 pub use tape::{apply, scatter_add_banded, Kernel, Real};
 pub use texture::{jitter_uv, sample_bilinear, BilinearWrap};
