@@ -67,7 +67,7 @@ fn kill_at(out: &Path, geometry: &str, what: &str, point: impl Fn(&Path, &[Strin
     reader.join().expect("stderr reader");
 }
 
-/// report.json without wall times: keys `seconds`, `stage_seconds`, `timings` at any depth, and
+/// report.json without wall times: keys `seconds`, `stage_seconds`, `timings`, `phases` at any depth, and
 /// durations written into text (the visual hull's summary says "sampled in 0.48 s, total 0.81 s").
 fn comparable(out: &Path) -> Value {
     let duration = regex::Regex::new(r"[0-9]+(\.[0-9]+)? s\b").expect("pattern");
@@ -80,7 +80,7 @@ fn comparable(out: &Path) -> Value {
         text(v);
         match v {
             Value::Object(m) => {
-                for k in ["seconds", "stage_seconds", "timings"] {
+                for k in ["seconds", "stage_seconds", "timings", "phases"] {
                     m.remove(k);
                 }
                 m.values_mut().for_each(|x| strip(x, text));
