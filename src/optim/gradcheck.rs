@@ -166,10 +166,46 @@ where
     Ok(report)
 }
 
+/// Checks a fused operator against the composition of candle operators it replaces: `composed` and
+/// `fused` are scalar losses of the same `vars` (f64), and must agree in value and in every
+/// gradient element within `tol` relative to max(|composed|, 1). Where finite differences test an
+/// adjoint against the function, this tests it against candle's own autodiff at the very points
+/// (kinks, ties) where finite differences are least telling.
+pub fn check_same_as_composition(composed: &Tensor, fused: &Tensor, vars: &[&Var], tol: f64) -> anyhow::Result<()> {
+    let close = |c: f64, f: f64| (c - f).abs() <= tol * c.abs().max(1.0);
+    let (c, f) = (composed.to_scalar::<f64>()?, fused.to_scalar::<f64>()?);
+    if !close(c, f) {
+        bail!("fused operator's value {f} differs from the composition's {c}");
+    }
+    let (gc, gf) = (composed.backward()?, fused.backward()?);
+    for (v, var) in vars.iter().enumerate() {
+        let values = |g: &candle_core::backprop::GradStore| -> anyhow::Result<Vec<f64>> {
+            Ok(g.get(var.as_tensor()).with_context(|| format!("no gradient for input {v}"))?.flatten_all()?.to_vec1::<f64>()?)
+        };
+        for (i, (c, f)) in values(&gc)?.into_iter().zip(values(&gf)?).enumerate() {
+            if !close(c, f) {
+                bail!("input {v} element {i}: composition's gradient {c}, fused operator's {f}");
+            }
+        }
+    }
+    Ok(())
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
     use candle_core::Device;
+
+    #[test]
+    fn a_fused_operator_with_the_same_value_but_another_gradient_is_caught() -> anyhow::Result<()> {
+        // At x = 1, x² and x agree in value (1) but not in slope (2 against 1).
+        let x = Var::from_tensor(&Tensor::new(&[1.0f64], &Device::Cpu)?)?;
+        let squared = x.as_tensor().sqr()?.sum_all()?;
+        assert!(check_same_as_composition(&squared, &x.as_tensor().sqr()?.sum_all()?, &[&x], 1e-12).is_ok());
+        let err = check_same_as_composition(&squared, &x.as_tensor().sum_all()?, &[&x], 1e-12).expect_err("another slope");
+        assert!(err.to_string().contains("element 0"), "{err}");
+        Ok(())
+    }
 
     #[test]
     fn accepts_a_correct_gradient_and_rejects_a_wrong_one() -> anyhow::Result<()> {

@@ -169,7 +169,7 @@ impl Kernel for ShadingTerms {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::optim::gradcheck::check_gradient;
+    use crate::optim::gradcheck::{check_gradient, check_same_as_composition};
     use candle_core::Device;
 
     #[test]
@@ -208,15 +208,7 @@ mod tests {
         let specular_term = (lum_s.mean_all()? / lum_d.mean_all()?.maximum(EPS)?)?;
         let composed = ((diffuse_term * 0.15)? + (specular_term * 0.0025)?)?;
         let fused = shading_regularizer(dv.as_tensor(), sv.as_tensor(), &target, 0.15, 0.0025)?;
-        assert!((composed.to_scalar::<f64>()? - fused.to_scalar::<f64>()?).abs() < 1e-12);
-        let (gc, gf) = (composed.backward()?, fused.backward()?);
-        for v in [&dv, &sv] {
-            let values = |g: &candle_core::backprop::GradStore| -> anyhow::Result<Vec<f64>> { Ok(g.get(v.as_tensor()).expect("grad").flatten_all()?.to_vec1::<f64>()?) };
-            for (i, (c, f)) in values(&gc)?.iter().zip(values(&gf)?).enumerate() {
-                assert!((c - f).abs() <= 1e-12 * c.abs().max(1.0), "element {i}: composition {c}, operator {f}");
-            }
-        }
-        Ok(())
+        check_same_as_composition(&composed, &fused, &[&dv, &sv], 1e-12)
     }
 
     #[test]
