@@ -50,8 +50,6 @@ pub struct BatchRender {
     /// Demodulated diffuse light and specular light [N, 1, 3] (Monte Carlo only; the shading
     /// regulariser reads them).
     pub light_buffers: Option<(Tensor, Tensor)>,
-    /// Atlas UV of each row (the lookups above; the smoothness regulariser jitters them).
-    pub uv: Arc<[[f32; 2]]>,
     /// Where each view's rows start (and the total at the end).
     pub offsets: Vec<usize>,
     /// The shading normals [N, 3] on the tape, when they are parameters (the normal map, the
@@ -134,7 +132,7 @@ pub fn render_batch(views: &[&TrainingView], params: &Parameters, ctx: &ShadingC
     };
     let rgb = rgb.reshape((n, 1, 3))?;
     let light_buffers = light_buffers.map(|(d, s): (Tensor, Tensor)| -> Result<(Tensor, Tensor)> { Ok((d.reshape((n, 1, 3))?, s.reshape((n, 1, 3))?)) }).transpose()?;
-    Ok(BatchRender { rgb, kd, ks, light_buffers, uv, offsets, normals: normals.cloned(), jittered })
+    Ok(BatchRender { rgb, kd, ks, light_buffers, offsets, normals: normals.cloned(), jittered })
 }
 
 /// The pixels' shading normals through the normal map, [N, 3] on the tape: the map looked up at
