@@ -65,10 +65,11 @@ fn floor_eps<T: Real>(x: T) -> (T, T) {
     }
 }
 
-/// One pixel's diffuse luminance, the error e = T(lum·α) − reference with dT/dlum (α included),
-/// the diffuse share lum_d / max(lum, ε), and max(lum, ε) with its slope.
+/// One pixel's diffuse and specular luminances, the error e = T(lum·α) − reference with dT/dlum
+/// (α included), the diffuse share lum_d / max(lum, ε), and max(lum, ε) with its slope.
 struct PixelTerms<T> {
     lum_d: T,
+    lum_s: T,
     error: T,
     slope: T,
     share: T,
@@ -78,14 +79,14 @@ struct PixelTerms<T> {
 
 impl<T: Real> PixelTerms<T> {
     #[inline]
-    fn of(d: &[T], s: &[T], alpha: T, reference: T) -> (Self, T) {
+    fn of(d: &[T], s: &[T], alpha: T, reference: T) -> Self {
         let third = T::from_f64(1.0 / 3.0);
         let lum_d = (d[0] + d[1] + d[2]) * third;
         let lum_s = (s[0] + s[1] + s[2]) * third;
         let lum = lum_d + lum_s;
         let (v, slope) = tone_map_with_slope(lum * alpha);
         let (floor, floor_slope) = floor_eps(lum);
-        (PixelTerms { lum_d, error: v - reference, slope: slope * alpha, share: lum_d / floor, floor, floor_slope }, lum_s)
+        PixelTerms { lum_d, lum_s, error: v - reference, slope: slope * alpha, share: lum_d / floor, floor, floor_slope }
     }
 }
 
@@ -99,10 +100,10 @@ impl ShadingTerms {
             .map(|((d, s), k)| {
                 let mut acc = [0.0f64; 3];
                 for ((d, s), k) in d.chunks_exact(3).zip(s.chunks_exact(3)).zip(k.chunks_exact(2)) {
-                    let (p, lum_s) = PixelTerms::of(d, s, k[0], k[1]);
+                    let p = PixelTerms::of(d, s, k[0], k[1]);
                     acc[0] += (p.error.abs() * p.share).to_f64();
                     acc[1] += p.lum_d.to_f64();
-                    acc[2] += lum_s.to_f64();
+                    acc[2] += p.lum_s.to_f64();
                 }
                 acc
             })
@@ -143,20 +144,20 @@ impl Kernel for ShadingTerms {
         let third = T::from_f64(1.0 / 3.0);
         // ∂/∂lum_d and ∂/∂lum_s of pixel p's terms.
         let pixel = |d: &[T], s: &[T], k: &[T]| -> (T, T) {
-            let (p, _) = PixelTerms::of(d, s, k[0], k[1]);
+            let p = PixelTerms::of(d, s, k[0], k[1]);
             let through_t = abs_slope(p.error) * p.slope * p.share;
             let share_lum = T::zero() - p.lum_d * p.floor_slope / (p.floor * p.floor);
             let share_d = T::one() / p.floor + share_lum;
             let e = p.error.abs();
             (scale * (through_t + e * share_d) + spec_d, scale * (through_t + e * share_lum) + spec_s)
         };
-        let (d, s, k) = (x[0], x[1], x[2]);
         let [gd, gs, _] = grads else { return Ok(()) };
-        for (target, is_d) in [(gd, true), (gs, false)] {
+        // Each pixel's two weights once, for whichever of d and s wants a gradient.
+        let weights: Vec<(T, T)> = x[0].par_chunks(3).zip(x[1].par_chunks(3)).zip(x[2].par_chunks(2)).map(|((d, s), k)| pixel(d, s, k)).collect();
+        for (target, pick) in [(gd, (|w: &(T, T)| w.0) as fn(&(T, T)) -> T), (gs, |w: &(T, T)| w.1)] {
             let Some(out) = target.as_deref_mut() else { continue };
-            out.par_chunks_mut(3).zip(d.par_chunks(3)).zip(s.par_chunks(3)).zip(k.par_chunks(2)).for_each(|(((o, d), s), k)| {
-                let (wd, ws) = pixel(d, s, k);
-                let w = if is_d { wd } else { ws } * third;
+            out.par_chunks_mut(3).zip(weights.par_iter()).for_each(|(o, w)| {
+                let w = pick(w) * third;
                 for v in o.iter_mut() {
                     *v += w;
                 }
