@@ -82,12 +82,35 @@ enum Source {
     Surface([f32; 3]),
 }
 
-/// A stored sample: radiance source, local incident direction, weight (MIS / pdf / spp).
+/// A stored sample: radiance source, local incident direction, weight (MIS / pdf / spp), and its
+/// specular lobe at the prepare-time roughness.
 #[derive(Clone, Copy, Debug)]
 struct Stored {
     source: Source,
     wi_l: [f32; 3],
     weight: f32,
+    lobe: Lobe,
+}
+
+/// The specular lobe of a sample in the prepare-time frame (n = +z): the Fresnel-free lobe S and
+/// ∂S/∂roughness at the prepare-time roughness, and Schlick's weight (no roughness in it). It is
+/// the one part of a sample's evaluation that costs (a GGX D and two Smith Λ in f64), and forward
+/// and backward both need it, so `prepare` evaluates it once; a pass whose roughness input differs
+/// from the prepare-time value (a finite-difference probe) or that tilts the normal evaluates it
+/// afresh with the same function. Zero without the specular lobe.
+#[derive(Clone, Copy, Debug, Default)]
+struct Lobe {
+    value: f64,
+    droughness: f64,
+    schlick: f64,
+}
+
+impl Lobe {
+    fn of(wo_l: DVec3, wi_l: [f32; 3], roughness: f64) -> Lobe {
+        let wi = DVec3::new(wi_l[0] as f64, wi_l[1] as f64, wi_l[2] as f64);
+        let (value, droughness) = lobe_and_roughness_grad(wo_l, wi, roughness);
+        Lobe { value, droughness, schlick: schlick_weight(wo_l, wi) }
+    }
 }
 
 impl Stored {
@@ -109,6 +132,8 @@ pub struct McShading {
     normals: Arc<[[f32; 3]]>,
     /// Per pixel: its samples' range in its chunk's list (pixel p is in chunk p / PREPARE_CHUNK).
     ranges: Arc<[(u32, u32)]>,
+    /// Per pixel: the roughness the stored lobes were evaluated at (NaN for a miss).
+    roughness: Arc<[f32]>,
     /// One sample list per chunk of pixels, kept as drawn (no concatenated copy).
     chunks: Arc<[Vec<Stored>]>,
     light_res: usize,
@@ -138,17 +163,22 @@ impl McShading {
                 let mut rays = RayCount::ZERO;
                 for (j, px) in chunk.iter().enumerate() {
                     let before = stored.len();
-                    wo_l.push(px.map(|px| local_outgoing(&px.surfel, px.wo).1.to_array()));
-                    if let Some(px) = px {
+                    let wo = px.map(|px| local_outgoing(&px.surfel, px.wo).1.to_array());
+                    wo_l.push(wo);
+                    if let (Some(px), Some(wo)) = (px, wo) {
                         let i = c * PREPARE_CHUNK + j;
                         let p = SurfaceParams { kd: Vec3::from_array(kd[i]), roughness: ks[i][1], metallic: ks[i][2] };
+                        // The lobe as `eval_sample` would evaluate it: wo widened from the kept f32.
+                        let wo = DVec3::new(wo[0] as f64, wo[1] as f64, wo[2] as f64);
                         let mut rng = Sampler::new(settings.seed, px.stream);
                         rays += draw_samples(&px.surfel, px.wo, &p, &sampler, scene, settings, &mut rng, &mut |s| {
                             let source = match s.incident {
                                 Incident::Light(texel) => Source::Texel(texel),
                                 Incident::Surface => Source::Surface(s.radiance.to_array()),
                             };
-                            stored.push(Stored { source, wi_l: s.wi_l.to_array(), weight: s.weight * inv_n });
+                            let wi_l = s.wi_l.to_array();
+                            let lobe = if settings.effects.specular { Lobe::of(wo, wi_l, p.roughness as f64) } else { Lobe::default() };
+                            stored.push(Stored { source, wi_l, weight: s.weight * inv_n, lobe });
                         });
                     }
                     ranges.push((before as u32, stored.len() as u32));
@@ -169,7 +199,8 @@ impl McShading {
         ray_count::record(rays);
         let surface_samples = chunks.iter().flatten().filter(|s| matches!(s.source, Source::Surface(_))).count();
         let normals = pixels.iter().map(|p| p.map_or([0.0; 3], |p| p.surfel.normal.to_array())).collect();
-        McShading { wo_l: wo_l.into(), normals, ranges: ranges.into(), chunks: chunks.into(), light_res: light.res, specular: settings.effects.specular, rays, surface_samples }
+        let roughness = pixels.iter().zip(ks).map(|(p, k)| if p.is_some() { k[1] } else { f32::NAN }).collect();
+        McShading { wo_l: wo_l.into(), normals, ranges: ranges.into(), roughness, chunks: chunks.into(), light_res: light.res, specular: settings.effects.specular, rays, surface_samples }
     }
 
     pub fn len(&self) -> usize {
@@ -198,8 +229,9 @@ impl McShading {
     }
 
     /// Pixel `p`'s shading geometry: its local outgoing direction and, with a normal input, the
-    /// normal in the prepare-time frame (None for a miss).
-    fn geometry<T: Real>(&self, p: usize, normal: Option<&[T]>) -> Option<PixelGeometry> {
+    /// normal in the prepare-time frame (None for a miss); whether its stored lobes hold for the
+    /// input `roughness`.
+    fn geometry<T: Real>(&self, p: usize, normal: Option<&[T]>, roughness: f64) -> Option<PixelGeometry> {
         let wo = self.wo_l[p]?;
         let wo = DVec3::new(wo[0] as f64, wo[1] as f64, wo[2] as f64);
         let tilt = normal.map(|n| {
@@ -213,7 +245,8 @@ impl McShading {
             let m = sign * DVec3::new(unit.dot(axes[0]), unit.dot(axes[1]), unit.dot(axes[2]));
             Tilt { m, axes, unit, len, sign }
         });
-        Some(PixelGeometry { wo, tilt })
+        let stored_lobes = tilt.is_none() && roughness == self.roughness[p] as f64;
+        Some(PixelGeometry { wo, tilt, stored_lobes })
     }
 }
 
@@ -246,6 +279,8 @@ struct PixelGeometry {
     wo: DVec3,
     /// None: the prepare-time normal, +z (the three-input operator).
     tilt: Option<Tilt>,
+    /// The samples' stored lobes are this pass's: no tilt, and the prepare-time roughness.
+    stored_lobes: bool,
 }
 
 /// Everything about one sample that both passes use.
@@ -264,16 +299,16 @@ struct SampleEval {
 
 fn eval_sample(px: &PixelGeometry, s: &Stored, roughness: f64, specular: bool) -> SampleEval {
     let wo_l = px.wo;
-    let wi = DVec3::new(s.wi_l[0] as f64, s.wi_l[1] as f64, s.wi_l[2] as f64);
     let w = s.weight as f64;
     let Some(tilt) = &px.tilt else {
         let diffuse = clamp_cos(s.wi_l[2]) as f64 / std::f64::consts::PI * w;
         if !specular {
             return SampleEval { diffuse, ..SampleEval::default() };
         }
-        let (lobe, dlobe) = lobe_and_roughness_grad(wo_l, wi, roughness);
-        return SampleEval { diffuse, lobe: lobe * w, dlobe: dlobe * w, schlick: schlick_weight(wo_l, wi), ..SampleEval::default() };
+        let l = if px.stored_lobes { s.lobe } else { Lobe::of(wo_l, s.wi_l, roughness) };
+        return SampleEval { diffuse, lobe: l.value * w, dlobe: l.droughness * w, schlick: l.schlick, ..SampleEval::default() };
     };
+    let wi = DVec3::new(s.wi_l[0] as f64, s.wi_l[1] as f64, s.wi_l[2] as f64);
     let m = tilt.m;
     let (cos_i, dcos_i) = clamped_cos_grad(m.dot(wi));
     let k = w / std::f64::consts::PI;
@@ -304,8 +339,8 @@ impl Kernel for McShading {
     fn forward<T: Real>(&self, x: &[&[T]], _shapes: &[&[usize]], out: &mut [T]) -> Result<()> {
         let (kd, ks, light, normal) = (x[0], x[1], x[2], x.get(3).copied());
         out.par_chunks_mut(6).enumerate().for_each(|(p, o)| {
-            let Some(px) = self.geometry(p, normal) else { return };
             let (k, rough, metal) = (rgb(kd, p), ks[3 * p + 1].to_f64(), ks[3 * p + 2].to_f64());
+            let Some(px) = self.geometry(p, normal, rough) else { return };
             let f0 = f0(k, metal);
             let mut acc = [0.0f64; 6];
             for s in self.pixel_samples(p) {
@@ -328,9 +363,10 @@ impl Kernel for McShading {
         // (geometry, kd, roughness, metallic, output gradient) of a covered pixel.
         type PixelData = (PixelGeometry, [f64; 3], f64, f64, [f64; 6]);
         let pixel = |p: usize| -> Option<PixelData> {
-            let px = self.geometry(p, normal)?;
+            let rough = ks[3 * p + 1].to_f64();
+            let px = self.geometry(p, normal, rough)?;
             let g: [f64; 6] = std::array::from_fn(|c| g_out[6 * p + c].to_f64());
-            Some((px, rgb(kd, p), ks[3 * p + 1].to_f64(), ks[3 * p + 2].to_f64(), g))
+            Some((px, rgb(kd, p), rough, ks[3 * p + 2].to_f64(), g))
         };
         // Material and light gradients in one sweep over each pixel's samples: each sample's
         // lobe is evaluated once for both. The light's adjoint sums in fixed chunks of pixels
@@ -417,4 +453,62 @@ pub fn shade_mc(op: &McShading, kd: &Tensor, ks: &Tensor, light: &Tensor) -> Res
 /// As [`shade_mc`] with the shading normal [N, 3] as an input too (see the module doc).
 pub fn shade_mc_with_normal(op: &McShading, kd: &Tensor, ks: &Tensor, light: &Tensor, normal: &Tensor) -> Result<Tensor> {
     apply(op.clone(), &[kd, ks, light, normal])
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::geometry::bvh::Bvh;
+    use crate::geometry::primitives::MeshBuilder;
+    use crate::material::{BaseColor, PartMaterial, Scalar};
+    use crate::render::effects::Effects;
+    use crate::render::gbuffer::GBuffer;
+    use crate::scene::Camera;
+    use candle_core::{Device, Var};
+    use glam::Quat;
+
+    /// The lobes `prepare` stores are the ones a pass would evaluate afresh: forward and every
+    /// gradient agree bit for bit with a copy of the operator whose stored roughness matches no
+    /// input (so it evaluates every lobe itself), in f32 as training runs it.
+    #[test]
+    fn stored_lobes_give_the_same_bits_as_fresh_ones() {
+        let mut b = MeshBuilder::new();
+        let part = b.part(PartMaterial { name: "m".into(), base_color: BaseColor::Constant(Vec3::splat(0.5)), roughness: Scalar::Constant(0.5), metallic: Scalar::Constant(0.0) });
+        b.ellipsoid(part, Vec3::new(0.0, 0.0, 0.45), Vec3::splat(0.4), Quat::IDENTITY, 12, 6);
+        b.cylinder(part, glam::Vec2::ZERO, 1.0, -0.05, 0.0, 16);
+        let mesh = b.build();
+        let bvh = Bvh::build(&mesh);
+        let camera = Camera::look_at(Vec3::new(2.2, 0.6, 1.2), Vec3::new(0.0, 0.0, 0.3), Vec3::Z, 0.8, 12, 12);
+        let g = GBuffer::trace(&mesh, &bvh, &camera);
+        let pixels: Vec<Option<McPixel>> = g.surfels.iter().enumerate().map(|(i, s)| s.map(|s| McPixel::from_surfel(&s, g.origin, i as u64))).collect();
+        let n = pixels.len();
+        let kd: Vec<[f32; 3]> = (0..n).map(|i| [0.1 + (i % 7) as f32 / 8.0, 0.4, 0.7]).collect();
+        // Roughness from the floor to 1, metallic 0 to 1.
+        let ks: Vec<[f32; 3]> = (0..n).map(|i| [0.0, (i % 11) as f32 / 10.0, (i % 3) as f32 / 2.0]).collect();
+        let light = CubeMap::from_fn(3, |d| Vec3::new(1.0 + d.x, 0.5 + d.z.max(0.0) * 4.0, 0.8));
+        let settings = McSettings { spp: 3, seed: 9, effects: Effects { shadows: true, specular: true, indirect_bounces: 1 }, ray_epsilon: 1e-4 };
+        let op = McShading::prepare(&pixels, &kd, &ks, &light, &TraceScene { mesh: &mesh, bvh: &bvh, materials: &mesh }, &settings);
+        let fresh = McShading { roughness: vec![f32::NAN; n].into(), ..op.clone() };
+        let var = |rows: Vec<f32>, shape: &[usize]| Var::from_vec(rows, shape, &Device::Cpu).unwrap();
+        // A weighted sum, so that every output channel carries its own gradient.
+        let weights: Vec<f32> = (0..6 * n).map(|i| 0.5 + (i % 13) as f32 / 13.0).collect();
+        let weights = Tensor::from_vec(weights, (n, 6), &Device::Cpu).unwrap();
+        let run = |op: &McShading| -> Vec<Vec<f32>> {
+            let kd = var(kd.iter().flatten().copied().collect(), &[n, 3]);
+            let ks = var(ks.iter().flatten().copied().collect(), &[n, 3]);
+            let l = var(light.data.iter().flat_map(|v| v.to_array()).collect(), &[6, 3, 3, 3]);
+            let out = shade_mc(op, kd.as_tensor(), ks.as_tensor(), l.as_tensor()).unwrap();
+            let grads = (&out * &weights).unwrap().sum_all().unwrap().backward().unwrap();
+            let mut all = vec![out.flatten_all().unwrap().to_vec1::<f32>().unwrap()];
+            for v in [&kd, &ks, &l] {
+                all.push(grads.get(v.as_tensor()).unwrap().flatten_all().unwrap().to_vec1::<f32>().unwrap());
+            }
+            all
+        };
+        assert!(op.chunks.iter().flatten().any(|s| s.lobe.value > 0.0), "no specular sample stored a lobe");
+        let (a, b) = (run(&op), run(&fresh));
+        for (k, (x, y)) in a.iter().zip(&b).enumerate() {
+            assert!(x.iter().zip(y).all(|(x, y)| x.to_bits() == y.to_bits()), "output {k} differs between stored and fresh lobes");
+        }
+    }
 }
