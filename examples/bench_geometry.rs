@@ -61,9 +61,13 @@ struct Args {
     /// Label source for the pass's normal prior (none, oracle, idarb-sim, labels:DIR, idarb).
     #[arg(long, default_value = "none")]
     prior: String,
-    /// Weight of the pass's normal prior (default: the pass's default).
+    /// Weight of the pass's normal prior in its last stage (default: the pass's default).
     #[arg(long)]
     normal_prior: Option<f64>,
+    /// The earlier stages' weight of the normal prior as a share of the last stage's (default: the
+    /// pass's default; 1 holds one weight in every stage).
+    #[arg(long)]
+    normal_prior_coarse_share: Option<f64>,
     /// Write every step's loss here, one per line (for comparing runs step by step).
     #[arg(long)]
     losses: Option<std::path::PathBuf>,
@@ -102,6 +106,9 @@ fn main() -> Result<()> {
     pass.coarse_views &= !args.full_resolution;
     if let Some(w) = args.normal_prior {
         pass.normal_prior = w;
+    }
+    if let Some(s) = args.normal_prior_coarse_share {
+        pass.normal_prior_coarse_share = s;
     }
     let t = Instant::now();
     let source: PriorSource = args.prior.parse()?;

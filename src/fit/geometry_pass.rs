@@ -95,14 +95,36 @@ pub struct GeometryPassConfig {
     /// Records written before it existed ran without it, hence `false` when absent.
     #[serde(default)]
     pub coarse_views: bool,
-    /// Weight of the normal prior: λ · mean over the labelled covered pixels of ‖n − label‖², the
-    /// shading normal against the view's world-space normal label (`GeometryView::normal`), the
-    /// material pass's normal term. It acts only on views that carry a label; 0 switches it off.
-    /// A run without labels records 0 (`jobs::geometry::pass_settings`), which leaves it out of
-    /// the record, so records written before it existed read back the same.
+    /// Weight of the normal prior in the last stage: λ · mean over the labelled covered pixels of
+    /// ‖n − label‖², the shading normal against the view's world-space normal label
+    /// (`GeometryView::normal`), the material pass's normal term. It acts only on views that carry
+    /// a label; 0 switches it off. A run without labels records 0
+    /// (`jobs::geometry::pass_settings`), which leaves it out of the record, so records written
+    /// before it existed read back the same.
     #[serde(default, skip_serializing_if = "is_zero")]
     pub normal_prior: f64,
+    /// The earlier stages' weight of the normal prior, as a share of `normal_prior`. Records written
+    /// before it existed held one weight in every stage, hence 1 when absent (and 1 is left out).
+    #[serde(default = "one", skip_serializing_if = "is_one")]
+    pub normal_prior_coarse_share: f64,
     pub seed: u64,
+}
+
+impl GeometryPassConfig {
+    /// The normal prior's weight in a stage: `normal_prior` in the last, its coarse share before.
+    pub fn stage_normal_prior(&self, last_stage: bool) -> f64 {
+        if last_stage {
+            self.normal_prior
+        } else {
+            self.normal_prior * self.normal_prior_coarse_share
+        }
+    }
+
+    /// The pass without the normal prior in any stage (a run without labels), recorded as such
+    /// passes were before the prior existed.
+    pub fn without_normal_prior(&self) -> GeometryPassConfig {
+        GeometryPassConfig { normal_prior: 0.0, normal_prior_coarse_share: 1.0, ..self.clone() }
+    }
 }
 
 impl Default for GeometryPassConfig {
@@ -133,6 +155,7 @@ impl Default for GeometryPassConfig {
             final_edge_pixels: 1.5,
             coarse_views: true,
             normal_prior: GEOMETRY_NORMAL_PRIOR,
+            normal_prior_coarse_share: GEOMETRY_NORMAL_PRIOR_COARSE_SHARE,
             seed: 0,
         }
     }
@@ -151,6 +174,14 @@ pub struct GeometryView {
 
 fn is_zero(v: &f64) -> bool {
     *v == 0.0
+}
+
+fn one() -> f64 {
+    1.0
+}
+
+fn is_one(v: &f64) -> bool {
+    *v == 1.0
 }
 
 /// Per-step record.
@@ -554,16 +585,26 @@ const KD_SMOOTHNESS: f64 = 0.1;
 /// (0.859). So 2 stays.
 pub const GEOMETRY_LAMBDA: f64 = 2.0;
 
-/// Weight of the normal prior in the pass (`GeometryPassConfig::normal_prior`). The prior is
-/// ‖n − label‖² ≈ θ² (θ the angle to the label), beside an L1 colour loss of a few hundredths:
-/// IDArb-quality labels (about 20° off) give a term of about 0.1 per pixel, so a weight near 1
-/// makes the labels, not the images, shape the mesh, and their smooth errors get written into it.
-/// Measured with simulated IDArb labels (`bench_geometry --prior idarb-sim`; docs/geometry.md,
-/// *The normal labels in the geometry pass*): on the default scene 1 / 0.1 / 0.01 / 0.003 / 0.001
-/// take the test-view normal error from 8.47° to 13.40 / 10.90 / 5.49 / 6.86 / 7.85°; on the
-/// hotdog 0.003 takes it from 10.66° to 8.66° with every position score better, where 0.01
-/// already costs F-score (0.931 → 0.900). 0.003 is the largest weight measured that helps both.
-pub const GEOMETRY_NORMAL_PRIOR: f64 = 0.003;
+/// Weight of the normal prior in the pass's last stage (`GeometryPassConfig::normal_prior`). The
+/// prior is ‖n − label‖² ≈ θ² (θ the angle to the label), beside an L1 colour loss of a few
+/// hundredths: IDArb-quality labels (about 20° off) give a term of about 0.1 per pixel, so a weight
+/// near 1 makes the labels, not the images, shape the mesh, and their smooth errors get written
+/// into it. Measured with simulated IDArb labels (`bench_geometry --prior idarb-sim`;
+/// docs/geometry.md, *The normal labels in the geometry pass*). One weight in every stage: on the
+/// default scene 1 / 0.1 / 0.01 / 0.003 / 0.001 take the test-view normal error from 8.47° to
+/// 13.40 / 10.90 / 5.49 / 6.86 / 7.85°, but on the hotdog 0.01 already costs F-score (0.931 →
+/// 0.900), so 0.003 was the default. In the last stage alone (`GEOMETRY_NORMAL_PRIOR_COARSE_SHARE`)
+/// 0.01 / 0.02 give 5.34 / 4.79° on the default scene and 6.83 / 6.67° on the hotdog (6.86° and
+/// 8.66° with 0.003 throughout), with every position score as good or better.
+pub const GEOMETRY_NORMAL_PRIOR: f64 = 0.02;
+
+/// The earlier stages' weight of the normal prior, as a share of the last stage's: none. In the
+/// coarse stages the mesh is still far from its place, and a normal held to its label at a point
+/// in the wrong place tilts the triangle's neighbours; the labels there bought nothing the last
+/// stage does not (docs/geometry.md: 0.003 before a last stage at 0.01 gave 5.18° on the default
+/// scene but 7.86° on the hotdog, against 5.34° and 6.83° with none before it; before 0.02, 5.14°
+/// and 7.41° against 4.79° and 6.67°).
+pub const GEOMETRY_NORMAL_PRIOR_COARSE_SHARE: f64 = 0.0;
 
 /// Rounds of the remesher between stages: the remesher's own default, as for the hull.
 const REMESH_ROUNDS: u16 = 10;
@@ -675,7 +716,7 @@ pub fn run_geometry_pass(start: &Mesh, views: &[GeometryView], config: &Geometry
             kd: state.kd.as_tensor(),
             light: light.as_tensor(),
             mask_weight: config.mask_weight,
-            normal_prior: config.normal_prior,
+            normal_prior: config.stage_normal_prior(stages.len() == edges.len()),
             share: 1.0 / batch.len() as f64,
         };
         let per_view: Vec<ViewGradients> = batch.par_iter().zip(&backgrounds).map(|(&i, &bg)| view_gradients(&targets[i], &inputs, bg)).collect::<Result<_>>()?;
@@ -795,6 +836,20 @@ pub fn render_sh(mesh: &Mesh, vertex_kd: &[Vec3], light_sh: &[f32], camera: &Cam
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_record_without_the_coarse_share_held_one_prior_weight_in_every_stage() -> Result<()> {
+        let new = GeometryPassConfig { normal_prior: 0.02, normal_prior_coarse_share: 0.25, ..Default::default() };
+        assert_eq!((new.stage_normal_prior(false), new.stage_normal_prior(true)), (0.005, 0.02));
+        let mut old = serde_json::to_value(&new)?;
+        old.as_object_mut().context("a record is an object")?.remove("normal_prior_coarse_share");
+        let old: GeometryPassConfig = serde_json::from_value(old)?;
+        assert_eq!((old.stage_normal_prior(false), old.stage_normal_prior(true)), (0.02, 0.02));
+        // A pass without the prior records neither field, as records before the prior did.
+        let text = serde_json::to_string(&new.without_normal_prior())?;
+        assert!(!text.contains("normal_prior"), "{text}");
+        Ok(())
+    }
 
     #[test]
     fn the_views_gradients_add_up_to_the_gradient_of_the_batch_loss() -> Result<()> {

@@ -182,13 +182,14 @@ impl PassLabels<'_> {
 }
 
 /// The pass settings a reconstruction runs with: the normal prior only when there are labels
-/// (`labelled`), so a run without a prior records (and is identified by) a pass without one.
+/// (`labelled`) and a weight, so a run without a prior, or with its weight at 0, records (and is
+/// identified by) a pass without one.
 pub fn pass_settings(pass: &GeometryPassConfig, labelled: bool) -> GeometryPassConfig {
-    let mut used = pass.clone();
-    if !labelled {
-        used.normal_prior = 0.0;
+    if labelled && pass.normal_prior > 0.0 {
+        pass.clone()
+    } else {
+        pass.without_normal_prior()
     }
-    used
 }
 
 /// The geometry of a run on `dataset` from `source`. A reconstruction's pass holds its normals

@@ -105,8 +105,9 @@ pub struct GeometryPassOverrides {
     /// Iterations of the geometry pass (when the geometry is reconstructed).
     #[arg(long)]
     pub geometry_iterations: Option<usize>,
-    /// Weight of the geometry pass's normal prior: the shading normals held to the prior's normal
-    /// labels while the mesh is reconstructed (only with a prior; 0 turns it off; docs/geometry.md).
+    /// Weight of the geometry pass's normal prior in its last stage (the earlier stages take a
+    /// share of it): the shading normals held to the prior's normal labels while the mesh is
+    /// reconstructed (only with a prior; 0 turns it off; docs/geometry.md).
     #[arg(long)]
     pub geometry_normal_prior: Option<f64>,
 }
