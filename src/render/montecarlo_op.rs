@@ -8,7 +8,9 @@
 //! reads and its weight (MIS weight / pdf). Forward and backward then evaluate the same fixed-sample
 //! estimator: directions, visibility, pdfs, MIS weights and the lobe choice get no gradient;
 //! radiance (a nearest-texel read) is linear in the light; the specular lobe is differentiated by
-//! hand (`material::brdf_grad`). At the prepare-time values the forward equals `montecarlo::shade`.
+//! hand (`material::brdf_grad`), its value and roughness derivative evaluated once per sample by
+//! `prepare` (`Lobe`) for both passes. At the prepare-time values the forward equals
+//! `montecarlo::shade`.
 //! With interreflection, a sample that arrives from the object's own surface keeps the radiance
 //! estimated at prepare time as a constant: it is detached like visibility (its dependence on the
 //! material elsewhere and on the light is not differentiated), while the BRDF it meets at the
