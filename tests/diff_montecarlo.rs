@@ -208,7 +208,7 @@ fn tilted_normals(g: &GBuffer, tilt: f32, rng: &mut Sampler) -> Vec<[f32; 3]> {
 fn check_with_normal(kd: Vec<[f32; 3]>, ks: Vec<[f32; 3]>, light: CubeMap, normals: Vec<[f32; 3]>, s: McSettings, tol: f64) -> anyhow::Result<()> {
     let (mesh, bvh, g) = scene();
     let trace = TraceScene { mesh: &mesh, bvh: &bvh, materials: &mesh };
-    let op = McShading::prepare(&pixels(&g), &kd, &ks, &light, &trace, &s);
+    let op = McShading::prepare_for_normal_input(&pixels(&g), &kd, &ks, &light, &trace, &s);
     let n = g.surfels.len();
     let weights = Tensor::rand(0.5f64, 1.5, (n, 6), &Device::Cpu)?;
     let opts = GradCheckOptions { eps: 1e-7, tol, max_elements: 400, seed: 4 };

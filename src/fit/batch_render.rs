@@ -195,7 +195,11 @@ fn shade_batch_mc(views: &[&TrainingView], offsets: &[usize], kd: &Tensor, ks: &
         None => &*ctx.mesh,
     };
     let scene = TraceScene { mesh: &ctx.mesh, bvh: &ctx.bvh, materials };
-    let op = McShading::prepare(&pixels, &to_rows(kd)?, &to_rows(ks)?, &light, &scene, &settings);
+    let (kd_rows, ks_rows) = (to_rows(kd)?, to_rows(ks)?);
+    let op = match normals {
+        Some(_) => McShading::prepare_for_normal_input(&pixels, &kd_rows, &ks_rows, &light, &scene, &settings),
+        None => McShading::prepare(&pixels, &kd_rows, &ks_rows, &light, &scene, &settings),
+    };
     let out = match normals {
         Some(n) => shade_mc_with_normal(&op, kd, ks, params.light.as_tensor(), n)?,
         None => shade_mc(&op, kd, ks, params.light.as_tensor())?,

@@ -134,7 +134,8 @@ pub struct McShading {
     normals: Arc<[[f32; 3]]>,
     /// Per pixel: its samples' range in its chunk's list (pixel p is in chunk p / PREPARE_CHUNK).
     ranges: Arc<[(u32, u32)]>,
-    /// Per pixel: the roughness the stored lobes were evaluated at (NaN for a miss).
+    /// Per pixel: the roughness the stored lobes were evaluated at (NaN for a miss, or when no
+    /// lobe was stored).
     roughness: Arc<[f32]>,
     /// One sample list per chunk of pixels, kept as drawn (no concatenated copy).
     chunks: Arc<[Vec<Stored>]>,
@@ -151,6 +152,19 @@ impl McShading {
     /// Draws the samples with the current values (`kd`, `ks` per pixel; `light` the base cube map;
     /// `scene`'s materials are the current ones too, read where bounces land).
     pub fn prepare(pixels: &[Option<McPixel>], kd: &[[f32; 3]], ks: &[[f32; 3]], light: &CubeMap, scene: &TraceScene, settings: &McSettings) -> McShading {
+        Self::draw(pixels, kd, ks, light, scene, settings, true)
+    }
+
+    /// As [`Self::prepare`], for an operator that will always be given the normal input: its
+    /// frames are tilted, so no stored lobe would be read, and none is evaluated (every pass
+    /// evaluates the lobes itself, whatever inputs it gets).
+    pub fn prepare_for_normal_input(pixels: &[Option<McPixel>], kd: &[[f32; 3]], ks: &[[f32; 3]], light: &CubeMap, scene: &TraceScene, settings: &McSettings) -> McShading {
+        Self::draw(pixels, kd, ks, light, scene, settings, false)
+    }
+
+    /// The samples, with their lobes at the prepare-time roughness when `store_lobes`.
+    fn draw(pixels: &[Option<McPixel>], kd: &[[f32; 3]], ks: &[[f32; 3]], light: &CubeMap, scene: &TraceScene, settings: &McSettings, store_lobes: bool) -> McShading {
+        let store_lobes = store_lobes && settings.effects.specular;
         let sampler = LightSampler::new(light);
         let inv_n = 1.0 / settings.spp.max(1) as f32;
         // Pixels in chunks, each filling one sample list (no allocation per pixel, and none of
@@ -179,7 +193,7 @@ impl McShading {
                                 Incident::Surface => Source::Surface(s.radiance.to_array()),
                             };
                             let wi_l = s.wi_l.to_array();
-                            let lobe = if settings.effects.specular { Lobe::of(wo, wi_l, p.roughness as f64) } else { Lobe::default() };
+                            let lobe = if store_lobes { Lobe::of(wo, wi_l, p.roughness as f64) } else { Lobe::default() };
                             stored.push(Stored { source, wi_l, weight: s.weight * inv_n, lobe });
                         });
                     }
@@ -201,7 +215,8 @@ impl McShading {
         ray_count::record(rays);
         let surface_samples = chunks.iter().flatten().filter(|s| matches!(s.source, Source::Surface(_))).count();
         let normals = pixels.iter().map(|p| p.map_or([0.0; 3], |p| p.surfel.normal.to_array())).collect();
-        let roughness = pixels.iter().zip(ks).map(|(p, k)| if p.is_some() { k[1] } else { f32::NAN }).collect();
+        // NaN matches no input: without stored lobes every pass evaluates its own.
+        let roughness = pixels.iter().zip(ks).map(|(p, k)| if p.is_some() && store_lobes { k[1] } else { f32::NAN }).collect();
         McShading { wo_l: wo_l.into(), normals, ranges: ranges.into(), roughness, chunks: chunks.into(), light_res: light.res, specular: settings.effects.specular, rays, surface_samples }
     }
 
@@ -466,14 +481,16 @@ mod tests {
     use crate::render::effects::Effects;
     use crate::render::gbuffer::GBuffer;
     use crate::scene::Camera;
+    use anyhow::Context;
     use candle_core::{Device, Var};
     use glam::Quat;
 
     /// The lobes `prepare` stores are the ones a pass would evaluate afresh: forward and every
-    /// gradient agree bit for bit with a copy of the operator whose stored roughness matches no
-    /// input (so it evaluates every lobe itself), in f32 as training runs it.
+    /// gradient agree bit for bit with the operator drawn without stored lobes
+    /// (`prepare_for_normal_input`, the same samples, every lobe evaluated by the pass itself),
+    /// in f32 as training runs it.
     #[test]
-    fn stored_lobes_give_the_same_bits_as_fresh_ones() {
+    fn stored_lobes_give_the_same_bits_as_fresh_ones() -> anyhow::Result<()> {
         let mut b = MeshBuilder::new();
         let part = b.part(PartMaterial { name: "m".into(), base_color: BaseColor::Constant(Vec3::splat(0.5)), roughness: Scalar::Constant(0.5), metallic: Scalar::Constant(0.0) });
         b.ellipsoid(part, Vec3::new(0.0, 0.0, 0.45), Vec3::splat(0.4), Quat::IDENTITY, 12, 6);
@@ -489,28 +506,31 @@ mod tests {
         let ks: Vec<[f32; 3]> = (0..n).map(|i| [0.0, (i % 11) as f32 / 10.0, (i % 3) as f32 / 2.0]).collect();
         let light = CubeMap::from_fn(3, |d| Vec3::new(1.0 + d.x, 0.5 + d.z.max(0.0) * 4.0, 0.8));
         let settings = McSettings { spp: 3, seed: 9, effects: Effects { shadows: true, specular: true, indirect_bounces: 1 }, ray_epsilon: 1e-4 };
-        let op = McShading::prepare(&pixels, &kd, &ks, &light, &TraceScene { mesh: &mesh, bvh: &bvh, materials: &mesh }, &settings);
-        let fresh = McShading { roughness: vec![f32::NAN; n].into(), ..op.clone() };
-        let var = |rows: Vec<f32>, shape: &[usize]| Var::from_vec(rows, shape, &Device::Cpu).unwrap();
+        let scene = TraceScene { mesh: &mesh, bvh: &bvh, materials: &mesh };
+        let op = McShading::prepare(&pixels, &kd, &ks, &light, &scene, &settings);
+        let fresh = McShading::prepare_for_normal_input(&pixels, &kd, &ks, &light, &scene, &settings);
+        let dev = Device::Cpu;
         // A weighted sum, so that every output channel carries its own gradient.
         let weights: Vec<f32> = (0..6 * n).map(|i| 0.5 + (i % 13) as f32 / 13.0).collect();
-        let weights = Tensor::from_vec(weights, (n, 6), &Device::Cpu).unwrap();
-        let run = |op: &McShading| -> Vec<Vec<f32>> {
-            let kd = var(kd.iter().flatten().copied().collect(), &[n, 3]);
-            let ks = var(ks.iter().flatten().copied().collect(), &[n, 3]);
-            let l = var(light.data.iter().flat_map(|v| v.to_array()).collect(), &[6, 3, 3, 3]);
-            let out = shade_mc(op, kd.as_tensor(), ks.as_tensor(), l.as_tensor()).unwrap();
-            let grads = (&out * &weights).unwrap().sum_all().unwrap().backward().unwrap();
-            let mut all = vec![out.flatten_all().unwrap().to_vec1::<f32>().unwrap()];
+        let weights = Tensor::from_vec(weights, (n, 6), &dev)?;
+        let run = |op: &McShading| -> anyhow::Result<Vec<Vec<f32>>> {
+            let kd = Var::from_vec(kd.iter().flatten().copied().collect(), (n, 3), &dev)?;
+            let ks = Var::from_vec(ks.iter().flatten().copied().collect(), (n, 3), &dev)?;
+            let l = Var::from_vec(light.data.iter().flat_map(|v| v.to_array()).collect(), (6, 3, 3, 3), &dev)?;
+            let out = shade_mc(op, kd.as_tensor(), ks.as_tensor(), l.as_tensor())?;
+            let grads = (&out * &weights)?.sum_all()?.backward()?;
+            let mut all = vec![out.flatten_all()?.to_vec1::<f32>()?];
             for v in [&kd, &ks, &l] {
-                all.push(grads.get(v.as_tensor()).unwrap().flatten_all().unwrap().to_vec1::<f32>().unwrap());
+                all.push(grads.get(v.as_tensor()).context("a gradient for every input")?.flatten_all()?.to_vec1::<f32>()?);
             }
-            all
+            Ok(all)
         };
         assert!(op.chunks.iter().flatten().any(|s| s.lobe.value > 0.0), "no specular sample stored a lobe");
-        let (a, b) = (run(&op), run(&fresh));
+        assert!(fresh.chunks.iter().flatten().all(|s| s.lobe.value == 0.0), "a lobe stored for a normal input");
+        let (a, b) = (run(&op)?, run(&fresh)?);
         for (k, (x, y)) in a.iter().zip(&b).enumerate() {
             assert!(x.iter().zip(y).all(|(x, y)| x.to_bits() == y.to_bits()), "output {k} differs between stored and fresh lobes");
         }
+        Ok(())
     }
 }
