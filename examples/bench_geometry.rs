@@ -71,6 +71,10 @@ struct Args {
     /// Write every step's loss here, one per line (for comparing runs step by step).
     #[arg(long)]
     losses: Option<std::path::PathBuf>,
+    /// Seed of the pass (its view batches; default: the pass's default), to measure how far
+    /// apart two runs of the same settings land.
+    #[arg(long)]
+    seed: Option<u64>,
 }
 
 fn main() -> Result<()> {
@@ -109,6 +113,9 @@ fn main() -> Result<()> {
     }
     if let Some(s) = args.normal_prior_coarse_share {
         pass.normal_prior_coarse_share = s;
+    }
+    if let Some(s) = args.seed {
+        pass.seed = s;
     }
     let t = Instant::now();
     let source: PriorSource = args.prior.parse()?;

@@ -219,6 +219,7 @@ fn filter_rows<R: Send>(sres: usize, out_res: usize, cone_angle: f32, src_tiles:
         out_res,
         cone_angle,
         src_tiles,
+        |_| true,
         Vec::new,
         |acc: &mut Vec<(usize, R)>, o, r, fine| acc.push((o, row(r, fine))),
         |mut a, mut b| {
@@ -238,14 +239,17 @@ fn filter_rows<R: Send>(sres: usize, out_res: usize, cone_angle: f32, src_tiles:
 /// (16 × 6·64²·3 floats ≈ 5 MB at the default light resolution).
 const FOLD_PARTS: usize = 16;
 
-/// The culling core: visits every output texel (flat index o, direction r, candidate source tiles)
-/// in parallel over 8×8 output tiles, folding into accumulators made by `init` and combined in
-/// order by `reduce` ([`FOLD_PARTS`] contiguous parts: deterministic).
+/// The culling core: visits every output texel that `wanted` names (flat index o, direction r,
+/// candidate source tiles) in parallel over 8×8 output tiles, folding into accumulators made by
+/// `init` and combined in order by `reduce` ([`FOLD_PARTS`] contiguous parts: deterministic). An
+/// output tile with no wanted texel is skipped before its culling.
+#[allow(clippy::too_many_arguments)] // the culling's inputs, then the fold's three closures
 fn fold_rows<A: Send>(
     sres: usize,
     out_res: usize,
     cone_angle: f32,
     src_tiles: &[Tile],
+    wanted: impl Fn(usize) -> bool + Sync + Send,
     init: impl Fn() -> A + Sync + Send,
     visit: impl Fn(&mut A, usize, Vec3, &[usize]) + Sync + Send,
     reduce: impl Fn(A, A) -> A + Sync + Send,
@@ -273,6 +277,10 @@ fn fold_rows<A: Send>(
     let parts: Vec<A> = out_tiles
         .par_chunks(part_len)
         .map(|part| part.iter().fold(init(), |mut acc, ot| {
+            let texel = |i: usize, j: usize| (ot.face * out_res + i) * out_res + j;
+            if !(ot.i0..ot.i1).any(|i| (ot.j0..ot.j1).any(|j| wanted(texel(i, j)))) {
+                return acc;
+            }
             let coarse: Vec<usize> = (0..super_tiles.len())
                 .filter(|&g| ot.centre.dot(super_tiles[g].centre) >= super_reach[g])
                 .flat_map(|g| groups[g].iter().copied())
@@ -281,10 +289,13 @@ fn fold_rows<A: Send>(
             let mut fine = Vec::with_capacity(coarse.len());
             for i in ot.i0..ot.i1 {
                 for j in ot.j0..ot.j1 {
+                    if !wanted(texel(i, j)) {
+                        continue;
+                    }
                     let r = texel_dir(out_res, ot.face, i, j);
                     fine.clear();
                     fine.extend(coarse.iter().copied().filter(|&t| r.dot(src_tiles[t].centre) >= texel_reach[t]));
-                    visit(&mut acc, (ot.face * out_res + i) * out_res + j, r, &fine);
+                    visit(&mut acc, texel(i, j), r, &fine);
                 }
             }
             acc
@@ -295,7 +306,9 @@ fn fold_rows<A: Send>(
 
 /// Adjoint of [`kernel_filter`] without storing its matrix: every output texel's normalised row is
 /// recomputed (same culling, same weights) and `g_out` scattered through it into a source-sized
-/// buffer per parallel job; the buffers are summed.
+/// buffer per parallel job; the buffers are summed. Output texels with a zero gradient scatter
+/// nothing, so their rows are not built: a training view's lookups reach only the part of each
+/// level around its reflection directions (the skipped terms are exact zeros).
 fn kernel_filter_adjoint(g_out: &CubeMap, sres: usize, cone_angle: f32, weight: impl Fn(Vec3, Vec3, f32) -> f32 + Sync) -> CubeMap {
     let src_tiles = make_tiles(sres, TILE_SIDE);
     let packed = pack_tiles(sres, &src_tiles, None);
@@ -305,6 +318,7 @@ fn kernel_filter_adjoint(g_out: &CubeMap, sres: usize, cone_angle: f32, weight: 
         g_out.res,
         cone_angle,
         &src_tiles,
+        |o| g_out.data[o] != Vec3::ZERO,
         || (vec![Vec3::ZERO; n_src], Vec::<[f32; LANES]>::new()),
         |(acc, row_w), o, r, fine| {
             // The row's weights once (lanes, vectorised), then normalise and scatter.
@@ -629,6 +643,32 @@ mod tests {
             inside += a2 / (std::f64::consts::PI * d * d) * c * th.sin() * 2.0 * std::f64::consts::PI * cut / n as f64;
         }
         assert!((inside - 0.9).abs() < 1e-3, "{inside}");
+    }
+
+    #[test]
+    fn the_adjoint_of_a_sparse_gradient_equals_the_transpose() {
+        // A view's lookups touch a few texels of each level: the adjoint skips the rest (whole
+        // output tiles and single texels), which must change nothing.
+        use crate::rng::Sampler;
+        let mut rng = Sampler::from_seed(21);
+        let st = prefilter_specular_stencil(32, 16, 0.2, 0.95);
+        let t = st.transpose();
+        let mut g = CubeMap::constant(16, Vec3::ZERO);
+        for (o, v) in g.data.iter_mut().enumerate() {
+            // One face and a scatter of single texels elsewhere.
+            if o / 256 == 2 || rng.next_f32() < 0.03 {
+                *v = Vec3::new(rng.next_f32() - 0.5, rng.next_f32(), 2.0 * rng.next_f32());
+            }
+        }
+        let adjoint = prefilter_specular_adjoint(&g, 32, 0.2, 0.95);
+        let via_t: Vec<Vec3> = (0..6 * 32 * 32).map(|i| t.row(i).map(|(o, w)| g.data[o] * w).sum()).collect();
+        let scale = via_t.iter().map(|v| v.abs().max_element()).fold(0.0f32, f32::max);
+        assert!(scale > 0.0);
+        for (a, b) in adjoint.data.iter().zip(&via_t) {
+            assert!((*a - *b).abs().max_element() < 1e-5 * scale, "{a} vs {b}");
+        }
+        let zero = prefilter_specular_adjoint(&CubeMap::constant(16, Vec3::ZERO), 32, 0.2, 0.95);
+        assert!(zero.data.iter().all(|v| *v == Vec3::ZERO));
     }
 
     #[test]
