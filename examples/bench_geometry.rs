@@ -142,7 +142,7 @@ fn main() -> Result<()> {
         ("shading", p.timings.shading),
         ("backward", p.timings.backward),
         ("update (Large Steps solve, flip checks)", p.timings.update),
-        ("remesh between stages", p.timings.remesh),
+        ("remesh between stages, fold checks", p.timings.remesh),
     ];
     if args.json {
         let split_json: serde_json::Map<String, serde_json::Value> = split.iter().map(|(k, v)| (k.to_string(), per_step(*v).into())).collect();
@@ -168,8 +168,14 @@ fn main() -> Result<()> {
     );
     for st in &p.stages {
         println!(
-            "stage from iteration {}: target edge {:.4}, {} vertices, {} triangles, views at {:.2} of their resolution {}",
-            st.first_iteration, st.target_edge, st.vertices, st.triangles, st.view_scale, st.note
+            "stage from iteration {}: target edge {:.4}, {} vertices, {} triangles, views at {:.2} of their resolution, {:.1} % of the surface facing inward at its end {}",
+            st.first_iteration,
+            st.target_edge,
+            st.vertices,
+            st.triangles,
+            st.view_scale,
+            100.0 * st.inward_share_at_end.unwrap_or(f64::NAN),
+            st.note
         );
     }
     println!("| part | ms per step |\n|---|---:|");

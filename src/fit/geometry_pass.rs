@@ -40,7 +40,9 @@ use indicatif::{ProgressBar, ProgressStyle};
 use rayon::prelude::*;
 use serde::Serialize;
 
+use crate::geometry::bvh::Bvh;
 use crate::geometry::closest_point::SurfaceQuery;
+use crate::geometry::inward_surface::{inward_share, INWARD_SAMPLES};
 use crate::geometry::manifold::{check_closed_manifold, signed_volume};
 use crate::geometry::remesh::isotropic_remesh;
 use crate::geometry::Mesh;
@@ -208,7 +210,8 @@ pub struct GeometryTimings {
     pub shading: f64,
     pub backward: f64,
     pub update: f64,
-    /// Remeshing between stages, with the carrying-over of the per-vertex colour.
+    /// Remeshing between stages, with the carrying-over of the per-vertex colour, and each stage's
+    /// fold check (`StageRecord::inward_share_at_end`).
     pub remesh: f64,
 }
 
@@ -225,6 +228,16 @@ pub struct StageRecord {
     /// The share of the views' resolution the stage rendered at (`GeometryPassConfig::coarse_views`).
     #[serde(default = "full_resolution")]
     pub view_scale: f64,
+    /// The share of the surface facing into the mesh when the stage ended
+    /// (`geometry::inward_surface`): about 0 for a healthy surface, the area of a fold through
+    /// itself otherwise. Absent in records written before it existed.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub inward_share_at_end: Option<f64>,
+}
+
+/// The share of `mesh`'s surface facing into it (`geometry::inward_surface`), with the pass's seed.
+fn stage_end_inward_share(mesh: &Mesh, seed: u64) -> Result<f64> {
+    inward_share(mesh, &Bvh::build(mesh), INWARD_SAMPLES, seed).context("geometry pass: checking the mesh for folds")
 }
 
 fn full_resolution() -> f64 {
@@ -657,6 +670,7 @@ pub fn run_geometry_pass(start: &Mesh, views: &[GeometryView], config: &Geometry
         triangles: start.triangles.len(),
         note: String::new(),
         view_scale: stage_scale(0),
+        inward_share_at_end: None,
     }];
 
     let bar = if progress { ProgressBar::new(config.iterations as u64) } else { ProgressBar::hidden() };
@@ -672,6 +686,9 @@ pub fn run_geometry_pass(start: &Mesh, views: &[GeometryView], config: &Geometry
         if let Some(s) = stage_starts.iter().skip(1).position(|&first| first == it).map(|k| k + 1) {
             let t = Instant::now();
             let mesh = state.mesh();
+            if let Some(ended) = stages.last_mut() {
+                ended.inward_share_at_end = Some(stage_end_inward_share(&mesh, config.seed)?);
+            }
             let note = match remesh_stage(&mesh, &state.vertex_kd()?, edges[s]).with_context(|| format!("geometry pass: remeshing before iteration {it}"))? {
                 Ok((new, kd, note)) => {
                     state = StageState::new(new, &kd, &light, config, schedule, it)?;
@@ -682,7 +699,7 @@ pub fn run_geometry_pass(start: &Mesh, views: &[GeometryView], config: &Geometry
             if stage_scale(s) != stage_scale(s - 1) {
                 targets = view_targets(views, stage_scale(s))?;
             }
-            stages.push(StageRecord { first_iteration: it, target_edge: edges[s], vertices: state.x.len(), triangles: state.triangles.len(), note, view_scale: stage_scale(s) });
+            stages.push(StageRecord { first_iteration: it, target_edge: edges[s], vertices: state.x.len(), triangles: state.triangles.len(), note, view_scale: stage_scale(s), inward_share_at_end: None });
             timings.remesh += t.elapsed().as_secs_f64();
         }
         let t_step = Instant::now();
@@ -780,6 +797,11 @@ pub fn run_geometry_pass(start: &Mesh, views: &[GeometryView], config: &Geometry
     }
     bar.finish();
     let mesh = state.mesh();
+    if let Some(last) = stages.last_mut() {
+        let t = Instant::now();
+        last.inward_share_at_end = Some(stage_end_inward_share(&mesh, config.seed)?);
+        timings.remesh += t.elapsed().as_secs_f64();
+    }
     let vertex_kd = state.vertex_kd()?;
     let light_sh = light.as_tensor().flatten_all()?.to_vec1::<f32>()?;
     Ok(GeometryPassResult { mesh, vertex_kd, light_sh, history, stages, timings })

@@ -1,6 +1,7 @@
 //! Meshes, their files (OBJ via tobj, glTF via gltf), ray queries through a BVH (obvhs),
-//! closest-point queries (parry3d), area-weighted surface samples, and the visual hull of a set
-//! of masks (a starting shape when the data has no mesh).
+//! closest-point queries (parry3d), area-weighted surface samples, the visual hull of a set of
+//! masks (a starting shape when the data has no mesh), and checks of a mesh's health (topology,
+//! folds through itself).
 
 pub mod atlas;
 pub mod bvh;
@@ -12,6 +13,7 @@ pub mod hull;
 pub mod manifold;
 pub mod mask_distance;
 pub mod icosphere;
+pub mod inward_surface;
 pub mod ground_truth;
 pub mod materials_json;
 pub mod mesh;
