@@ -196,13 +196,9 @@ fn shade_batch_mc(views: &[&TrainingView], offsets: &[usize], kd: &Tensor, ks: &
     };
     let scene = TraceScene { mesh: &ctx.mesh, bvh: &ctx.bvh, materials };
     let (kd_rows, ks_rows) = (to_rows(kd)?, to_rows(ks)?);
-    let op = match normals {
-        Some(_) => McShading::prepare_for_normal_input(&pixels, &kd_rows, &ks_rows, &light, &scene, &settings),
-        None => McShading::prepare(&pixels, &kd_rows, &ks_rows, &light, &scene, &settings),
-    };
     let out = match normals {
-        Some(n) => shade_mc_with_normal(&op, kd, ks, params.light.as_tensor(), n)?,
-        None => shade_mc(&op, kd, ks, params.light.as_tensor())?,
+        Some(n) => shade_mc_with_normal(&McShading::prepare_for_normal_input(&pixels, &kd_rows, &ks_rows, &light, &scene, &settings), kd, ks, params.light.as_tensor(), n)?,
+        None => shade_mc(&McShading::prepare(&pixels, &kd_rows, &ks_rows, &light, &scene, &settings), kd, ks, params.light.as_tensor())?,
     };
     // The denoiser filters both buffers (six channels) in one pass per view.
     let out = if ctx.denoise {
