@@ -42,7 +42,8 @@ use serde::Serialize;
 
 use crate::geometry::bvh::Bvh;
 use crate::geometry::closest_point::SurfaceQuery;
-use crate::geometry::inward_surface::{inward_share, INWARD_SAMPLES};
+use crate::geometry::enclosed_surface::enclosed_surface;
+use crate::geometry::inward_surface::{inward_share, FOLDED_SHARE, INWARD_SAMPLES};
 use crate::geometry::manifold::{check_closed_manifold, signed_volume};
 use crate::geometry::remesh::isotropic_remesh;
 use crate::geometry::Mesh;
@@ -497,14 +498,42 @@ impl StageState {
     }
 }
 
+/// The stage's mesh with a fold repaired, and what was done (empty when nothing was): when more
+/// than `FOLDED_SHARE` of its surface faces into it, the surface of what it encloses
+/// (`geometry::enclosed_surface`), sampled at half the next stage's edge so that the remesh to that
+/// edge loses nothing the grid could hold; `None` when the mesh is not folded or the extraction failed
+/// (the note then says why, and the stage goes on with the folded mesh).
+fn unfold(mesh: &Mesh, inward_share: f64, next_edge: f64) -> (Option<Mesh>, String) {
+    if inward_share <= FOLDED_SHARE {
+        return (None, String::new());
+    }
+    match enclosed_surface(mesh, 0.5 * next_edge as f32) {
+        Ok(e) => {
+            let note = format!(
+                "{:.1} % of the surface faced into the mesh: re-extracted the surface it encloses on a {}×{}×{} grid (voxel {:.4}{})",
+                100.0 * inward_share,
+                e.dims[0],
+                e.dims[1],
+                e.dims[2],
+                e.voxel,
+                if e.attempts > 1 { format!("; {} shifted grids tried", e.attempts) } else { String::new() }
+            );
+            (Some(e.mesh), note)
+        }
+        Err(err) => (None, format!("{:.1} % of the surface faced into the mesh, and re-extracting its surface failed ({err:#}); kept the folded mesh", 100.0 * inward_share)),
+    }
+}
+
 /// A successful remesh stage: the new mesh, its per-vertex colour, and the note on what was
 /// tolerated (needle triangles; empty when nothing was).
 type Remeshed = (Mesh, Vec<Vec3>, String);
 
-/// `mesh` remeshed to `target_edge` with its per-vertex colour carried over (each new vertex takes
-/// the colour interpolated at its closest point on the old surface), or `None` with the reason
-/// when the remesher's result is not a clean closed surface (the stage then keeps the old mesh).
-fn remesh_stage(mesh: &Mesh, vertex_kd: &[Vec3], target_edge: f64) -> Result<std::result::Result<Remeshed, String>> {
+/// `surface` remeshed to `target_edge` with the per-vertex colour of `colour` (a mesh and its
+/// vertices' colours; `surface` itself, or what it was extracted from) carried over: each new vertex
+/// takes the colour interpolated at its closest point on that mesh. `Err` with the reason when the
+/// remesher's result is not a clean closed surface (the stage then keeps the old mesh).
+fn remesh_stage(surface: &Mesh, colour: (&Mesh, &[Vec3]), target_edge: f64) -> Result<std::result::Result<Remeshed, String>> {
+    let mesh = surface;
     let (mut outcome, mut problems) = (None, Vec::new());
     for flips in [true, false] {
         let (p, t) = isotropic_remesh(&mesh.positions, &mesh.triangles, target_edge as f32, REMESH_ROUNDS, flips)?;
@@ -536,6 +565,7 @@ fn remesh_stage(mesh: &Mesh, vertex_kd: &[Vec3], target_edge: f64) -> Result<std
     let Some(new) = outcome else {
         return Ok(Err(format!("the remesh to edge {target_edge:.4} did not give a clean closed surface ({}); kept the previous mesh", problems.join("; "))));
     };
+    let (mesh, vertex_kd) = colour;
     let query = SurfaceQuery::new(mesh)?;
     let kd = new
         .positions
@@ -686,15 +716,19 @@ pub fn run_geometry_pass(start: &Mesh, views: &[GeometryView], config: &Geometry
         if let Some(s) = stage_starts.iter().skip(1).position(|&first| first == it).map(|k| k + 1) {
             let t = Instant::now();
             let mesh = state.mesh();
+            let share = stage_end_inward_share(&mesh, config.seed)?;
             if let Some(ended) = stages.last_mut() {
-                ended.inward_share_at_end = Some(stage_end_inward_share(&mesh, config.seed)?);
+                ended.inward_share_at_end = Some(share);
             }
-            let note = match remesh_stage(&mesh, &state.vertex_kd()?, edges[s]).with_context(|| format!("geometry pass: remeshing before iteration {it}"))? {
+            let kd = state.vertex_kd()?;
+            let (unfolded, repair) = unfold(&mesh, share, edges[s]);
+            let remeshed = remesh_stage(unfolded.as_ref().unwrap_or(&mesh), (&mesh, &kd), edges[s]).with_context(|| format!("geometry pass: remeshing before iteration {it}"))?;
+            let note = match remeshed {
                 Ok((new, kd, note)) => {
                     state = StageState::new(new, &kd, &light, config, schedule, it)?;
-                    note
+                    [repair, note].into_iter().filter(|n| !n.is_empty()).collect::<Vec<_>>().join("; ")
                 }
-                Err(why) => why,
+                Err(why) => [repair, why].into_iter().filter(|n| !n.is_empty()).collect::<Vec<_>>().join("; "),
             };
             if stage_scale(s) != stage_scale(s - 1) {
                 targets = view_targets(views, stage_scale(s))?;
@@ -925,6 +959,33 @@ mod tests {
             let worst = a.iter().zip(&b).fold(0.0f32, |m, (x, y)| m.max((x - y).abs()));
             assert!(worst <= 1e-5 * scale, "{name}: summed per-view gradients differ from the joint one by {worst} (largest {scale})");
         }
+        Ok(())
+    }
+
+    /// A stage boundary's repair: a folded mesh (a sphere with a second one inside it, whose whole
+    /// surface faces into the first) comes out as the outer sphere alone, and its colour carries over
+    /// through the remesh; a healthy mesh is left to the remesh as it is.
+    #[test]
+    fn a_folded_stage_mesh_is_unfolded_and_keeps_its_colour() -> Result<()> {
+        use crate::geometry::icosphere::icosphere;
+        let outer = icosphere(Vec3::ZERO, 1.0, 3);
+        let (healthy, note) = unfold(&outer, stage_end_inward_share(&outer, 0)?, 0.1);
+        assert!(healthy.is_none() && note.is_empty(), "a healthy mesh was changed: {note}");
+
+        let mut folded = outer.clone();
+        folded.append(icosphere(Vec3::new(0.1, 0.0, 0.0), 0.5, 3));
+        let share = stage_end_inward_share(&folded, 0)?;
+        assert!(share > 0.1, "the inner sphere faces inward: {share}");
+        let (unfolded, note) = unfold(&folded, share, 0.1);
+        let unfolded = unfolded.with_context(|| format!("the folded mesh was not repaired: {note}"))?;
+        assert!(stage_end_inward_share(&unfolded, 0)? <= FOLDED_SHARE, "{note}");
+        // Colour by height on the folded mesh, carried to the remeshed outer sphere.
+        let kd: Vec<Vec3> = folded.positions.iter().map(|p| Vec3::splat(0.5 + 0.5 * p.z)).collect();
+        let (new, new_kd, _) = remesh_stage(&unfolded, (&folded, &kd), 0.1)?.map_err(anyhow::Error::msg)?;
+        let worst_radius = new.positions.iter().map(|p| (p.length() - 1.0).abs()).fold(0.0f32, f32::max);
+        assert!(worst_radius < 0.03, "a vertex {worst_radius} off the outer sphere");
+        let worst_colour = new.positions.iter().zip(&new_kd).map(|(p, c)| (c.x - (0.5 + 0.5 * p.z)).abs()).fold(0.0f32, f32::max);
+        assert!(worst_colour < 0.05, "colour off by {worst_colour}");
         Ok(())
     }
 

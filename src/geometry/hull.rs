@@ -27,30 +27,25 @@
 //! round nothing is cut; under a plate seen from above the spike is cut flat at the lowest seen rim,
 //! like an object resting on a table. The result is bounded whatever the cameras.
 //!
-//! **Mesh.** baby_shark's marching cubes 33 (topologically correct, so the level set comes out closed
-//! and manifold; fast-surface-nets is faster but can join sheets at a vertex, and the remesher needs a
-//! manifold) meshes the zero level set; only the largest connected piece is kept (specks where a few
-//! cones happen to overlap, cavities that a hull cannot have anyway). baby_shark's incremental
-//! isotropic remesher (split long edges, collapse short ones, flip toward valence 6, tangential
-//! smoothing, vertices projected back onto the marching-cubes surface) then makes the triangles even,
+//! **Mesh.** The zero level set is meshed closed and manifold (iso_surface.rs: marching cubes 33, the
+//! largest piece kept). baby_shark's incremental isotropic remesher (split long edges, collapse short
+//! ones, flip toward valence 6, tangential smoothing, vertices projected back onto the marching-cubes
+//! surface) then makes the triangles even,
 //! at an edge of `edge_pixels` pixel footprints at the object's distance (and never below a voxel).
 //! The result is checked to be a closed, consistently oriented manifold (manifold.rs) facing outward.
 
-use std::collections::HashMap;
 use std::time::Instant;
 
 use anyhow::{bail, Result};
-use baby_shark::exports::nalgebra::Vector3;
-use baby_shark::voxel::prelude::{MarchingCubesMesher, Volume};
 use glam::{Mat3, Vec2, Vec3};
 use rayon::prelude::*;
 
-use crate::geometry::manifold::{check_closed_manifold, orient_consistently, signed_volume, split_pinched_vertices};
+use crate::geometry::iso_surface::{closed_level_surface, grey_mesh, FieldGrid, LevelSurface};
+use crate::geometry::manifold::{check_closed_manifold, signed_volume};
 use crate::geometry::mask_distance::MaskDistance;
 use crate::geometry::remesh::isotropic_remesh;
-use crate::geometry::{Mesh, Part};
+use crate::geometry::Mesh;
 use crate::image::Image;
-use crate::material::{BaseColor, PartMaterial, Scalar};
 use crate::scene::camera::{median_pixel_footprint, Projector};
 use crate::scene::dataset::mask_pixels;
 use crate::scene::Camera;
@@ -210,32 +205,22 @@ pub fn visual_hull(views: &[MaskView], opts: &HullOptions) -> Result<Hull> {
     fine.close_border();
     let sampled = start.elapsed().as_secs_f32();
 
-    let (mut positions, mut triangles) = marching_cubes(&fine);
-    let mc_triangles = triangles.len();
-    // Where two sheets of the level set touch, baby_shark's marching cubes can leave a vertex shared by
-    // two fans (1 on the hotdog); each fan gets its own vertex.
-    let pinches = split_pinched_vertices(&mut positions, &mut triangles);
-    let (positions, mut triangles) = largest_component(&positions, &triangles);
-    if triangles.is_empty() {
-        bail!("visual hull: the zero level set is empty (the hull is thinner than a voxel of {h})");
-    }
-    // The remesher's corner table needs one winding throughout, and baby_shark's marching cubes winds a
-    // few triangles the other way (8 of 57,398 on the hotdog); the summary says how many were turned.
-    let turned = orient_consistently(&mut triangles)
-        .map_err(|e| anyhow::anyhow!("visual hull: the marching-cubes surface is broken: {e}"))?;
-    orient_outward(&positions, &mut triangles);
-    check_closed_manifold(&hull_mesh(positions.clone(), triangles.clone()))
-        .map_err(|e| anyhow::anyhow!("visual hull: the marching-cubes surface is broken: {e}"))?;
+    let level = FieldGrid { origin: fine.origin, h: fine.h, dims: fine.dims, values: &fine.values };
+    // Where two sheets of the level set touch, marching cubes can leave a vertex shared by two fans (1
+    // on the hotdog), and it winds a few triangles the other way (8 of 57,398 on the hotdog); the
+    // summary says how many were mended.
+    let LevelSurface { positions, triangles, marched: mc_triangles, pinches, turned } =
+        closed_level_surface(&level, FAR_OUTSIDE).map_err(|e| anyhow::anyhow!("visual hull: {e}"))?;
     let target_edge = (opts.edge_pixels * footprint).max(h);
     let (new_positions, new_triangles) = isotropic_remesh(&positions, &triangles, target_edge, opts.remesh_iterations, true).map_err(|e| anyhow::anyhow!("visual hull: {e}"))?;
-    let mut mesh = hull_mesh(new_positions, new_triangles);
+    let mut mesh = grey_mesh("hull", new_positions, new_triangles);
     let mut remesh_note = String::new();
     if let Err(e) = check_closed_manifold(&mesh) {
         // A guard (not seen to fire on the tests nor the hotdog): the remesher's checks are local, and
         // flips are the operation with the weakest topological test there. Said in the summary.
         remesh_note = format!(" (the full remesh broke the surface: {e}; remeshed again without edge flips)");
         let (p, t) = isotropic_remesh(&positions, &triangles, target_edge, opts.remesh_iterations, false).map_err(|e| anyhow::anyhow!("visual hull: {e}"))?;
-        mesh = hull_mesh(p, t);
+        mesh = grey_mesh("hull", p, t);
     }
     let topology = check_closed_manifold(&mesh).map_err(|e| anyhow::anyhow!("visual hull: the remeshed surface is broken: {e}"))?;
     if signed_volume(&mesh) <= 0.0 {
@@ -627,121 +612,6 @@ fn first_hit(grid: &Grid, level: f32, origin: Vec3, dir: Vec3, lo: Vec3, hi: Vec
     None
 }
 
-/// Marching cubes 33 of the grid's zero level set, welded into indexed triangles in world units.
-fn marching_cubes(grid: &Grid) -> (Vec<Vec3>, Vec<[u32; 3]>) {
-    let h = grid.h;
-    let [nx, ny, nz] = grid.dims;
-    let value_at = |p: &Vector3<f32>| -> f32 {
-        let c = [p.x, p.y, p.z].map(|x| (x / h).round() as isize);
-        if c.iter().zip(&grid.dims).any(|(&i, &n)| i < 0 || i >= n as isize) {
-            return FAR_OUTSIDE;
-        }
-        let v = grid.values[grid.index(c.map(|i| i as usize))];
-        // A value within rounding of zero would put vertices of several cube edges on the same grid
-        // point, which welding would then join into a pinch; keep every value a little off the level.
-        let least = 1e-4 * h;
-        if v.abs() < least {
-            least.copysign(v)
-        } else {
-            v
-        }
-    };
-    let extent = Vector3::new((nx - 1) as f32 * h, (ny - 1) as f32 * h, (nz - 1) as f32 * h);
-    // baby_shark skips cubes with a corner outside its narrow band; keep every grid point in it.
-    let band = (FAR_OUTSIDE / h).ceil() as usize;
-    let volume = Volume::from_fn(h, Vector3::zeros(), extent, band, value_at);
-    let soup = MarchingCubesMesher::default().with_voxel_size(h).mesh(&volume);
-    let mut index: HashMap<[u32; 3], u32> = HashMap::with_capacity(soup.len() / 2);
-    let mut positions = Vec::new();
-    let mut triangles = Vec::with_capacity(soup.len() / 3);
-    for tri in soup.chunks_exact(3) {
-        let ids = [0, 1, 2].map(|k| {
-            let p = tri[k];
-            *index.entry([p.x.to_bits(), p.y.to_bits(), p.z.to_bits()]).or_insert_with(|| {
-                positions.push(grid.origin + Vec3::new(p.x, p.y, p.z));
-                (positions.len() - 1) as u32
-            })
-        });
-        if ids[0] != ids[1] && ids[1] != ids[2] && ids[0] != ids[2] {
-            triangles.push(ids);
-        }
-    }
-    (positions, triangles)
-}
-
-/// The connected piece (through shared vertices) with the most triangles, re-indexed.
-fn largest_component(positions: &[Vec3], triangles: &[[u32; 3]]) -> (Vec<Vec3>, Vec<[u32; 3]>) {
-    let mut parent: Vec<u32> = (0..positions.len() as u32).collect();
-    fn root(parent: &mut [u32], mut i: u32) -> u32 {
-        while parent[i as usize] != i {
-            parent[i as usize] = parent[parent[i as usize] as usize];
-            i = parent[i as usize];
-        }
-        i
-    }
-    for t in triangles {
-        let (a, b, c) = (root(&mut parent, t[0]), root(&mut parent, t[1]), root(&mut parent, t[2]));
-        parent[b as usize] = a;
-        let c = root(&mut parent, c);
-        parent[c as usize] = a;
-    }
-    let mut counts: HashMap<u32, usize> = HashMap::new();
-    for t in triangles {
-        *counts.entry(root(&mut parent, t[0])).or_insert(0) += 1;
-    }
-    let Some((&best, _)) = counts.iter().max_by_key(|&(_, &c)| c) else {
-        return (Vec::new(), Vec::new());
-    };
-    let mut remap = vec![u32::MAX; positions.len()];
-    let mut kept_positions = Vec::new();
-    let mut kept = Vec::new();
-    for t in triangles {
-        if root(&mut parent, t[0]) != best {
-            continue;
-        }
-        kept.push(t.map(|i| {
-            if remap[i as usize] == u32::MAX {
-                remap[i as usize] = kept_positions.len() as u32;
-                kept_positions.push(positions[i as usize]);
-            }
-            remap[i as usize]
-        }));
-    }
-    (kept_positions, kept)
-}
-
-/// Reverses every triangle when the closed surface encloses negative volume.
-fn orient_outward(positions: &[Vec3], triangles: &mut [[u32; 3]]) {
-    let volume: f64 = triangles
-        .iter()
-        .map(|t| {
-            let [a, b, c] = t.map(|i| positions[i as usize].as_dvec3());
-            a.dot(b.cross(c))
-        })
-        .sum();
-    if volume < 0.0 {
-        for t in triangles.iter_mut() {
-            t.swap(1, 2);
-        }
-    }
-}
-
-/// The hull as the one-part mesh the optimiser starts from: grey, rough, dielectric, no UVs.
-fn hull_mesh(positions: Vec<Vec3>, triangles: Vec<[u32; 3]>) -> Mesh {
-    let n = positions.len();
-    let mut mesh = Mesh {
-        normals: vec![Vec3::Z; n],
-        uvs: vec![Vec2::ZERO; n],
-        triangle_part: vec![0; triangles.len()],
-        positions,
-        triangles,
-        parts: vec![Part { name: "hull".into(), material: 0, has_uv: false }],
-        materials: vec![PartMaterial { name: "hull".into(), base_color: BaseColor::Constant(Vec3::splat(0.5)), roughness: Scalar::Constant(0.6), metallic: Scalar::Constant(0.0) }],
-    };
-    mesh.recompute_normals();
-    mesh
-}
-
 /// The 1st and 5th percentiles of the triangles' smallest angles, in degrees.
 fn min_angle_percentiles(mesh: &Mesh) -> (f32, f32) {
     let mut angles: Vec<f32> = (0..mesh.triangles.len()).map(|t| smallest_angle(mesh.triangle_positions(t))).collect();
@@ -761,6 +631,7 @@ mod tests {
     use super::*;
     use crate::geometry::bvh::Bvh;
     use crate::geometry::primitives::MeshBuilder;
+    use crate::material::{BaseColor, PartMaterial, Scalar};
 
     const FOV: f32 = 0.7; // radians, about the NeRF scenes' 40°
 

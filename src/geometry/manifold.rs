@@ -139,8 +139,9 @@ pub fn orient_consistently(triangles: &mut [[u32; 3]]) -> Result<usize, String> 
 }
 
 /// Gives each extra fan of a pinched vertex (one whose triangles form several fans, joined only at
-/// that point) its own copy of the vertex, so that the surface is manifold at its vertices as well as
-/// at its edges. Returns how many vertices were added.
+/// that point) its own copy of the vertex, so that the surface is manifold at its vertices; sheets
+/// that touch along an edge (an edge with four triangles) are parted the same way. Returns how many
+/// vertices were added.
 pub fn split_pinched_vertices(positions: &mut Vec<glam::Vec3>, triangles: &mut [[u32; 3]]) -> usize {
     // Corners (3·triangle + k) around the same vertex join when their triangles share an edge there.
     let mut parent: Vec<usize> = (0..3 * triangles.len()).collect();
@@ -160,6 +161,12 @@ pub fn split_pinched_vertices(positions: &mut Vec<glam::Vec3>, triangles: &mut [
     }
     let corner_of = |t: usize, v: u32, tris: &[[u32; 3]]| 3 * t + tris[t].iter().position(|&x| x == v).expect("vertex of triangle");
     for (&(a, b), ts) in &by_edge {
+        // An edge with more than two triangles joins nothing: where two sheets touch along an edge,
+        // each sheet's triangles around the edge's end points still join through the sheet's other
+        // edges, so each end point splits into one copy per sheet and the edge into one per sheet.
+        if ts.len() > 2 {
+            continue;
+        }
         for pair in ts.windows(2) {
             for v in [a, b] {
                 let (c0, c1) = (corner_of(pair[0], v, triangles), corner_of(pair[1], v, triangles));
@@ -265,6 +272,27 @@ mod tests {
         // A manifold mesh is left alone.
         let mut t = tetrahedron();
         assert_eq!(split_pinched_vertices(&mut t.positions, &mut t.triangles), 0);
+    }
+
+    /// Two tetrahedra sharing the edge 0–X (the second is the first turned 180° about the x axis).
+    #[test]
+    fn sheets_touching_along_an_edge_are_parted() {
+        let mut m = tetrahedron();
+        let other = tetrahedron();
+        m.positions.extend(other.positions[2..].iter().map(|p| Vec3::new(p.x, -p.y, -p.z)));
+        m.normals.extend(&other.normals[2..]);
+        m.uvs.extend(&other.uvs[2..]);
+        for t in &other.triangles {
+            m.triangles.push(t.map(|i| if i < 2 { i } else { i + 2 }));
+            m.triangle_part.push(0);
+        }
+        assert!(check_closed_manifold(&m).unwrap_err().contains("used 2 times in the same direction"));
+        assert_eq!(split_pinched_vertices(&mut m.positions, &mut m.triangles), 2);
+        m.normals.extend([Vec3::Z; 2]);
+        m.uvs.extend([glam::Vec2::ZERO; 2]);
+        let c = check_closed_manifold(&m).unwrap();
+        assert_eq!((c.vertices, c.edges, c.faces, c.euler), (8, 12, 8, 4));
+        assert!((signed_volume(&m) - 2.0 / 6.0).abs() < 1e-9);
     }
 
     #[test]

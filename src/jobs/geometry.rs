@@ -15,6 +15,7 @@ use glam::Vec3;
 use serde::Serialize;
 
 use crate::fit::geometry_pass::{run_geometry_pass, GeometryPassConfig, GeometryStep, GeometryTimings, GeometryView, StageRecord};
+use crate::geometry::inward_surface::FOLDED_SHARE;
 use crate::geometry::hull::{visual_hull, HullOptions, MaskView};
 use crate::eval::geometry_metrics::{geometry_metrics, load_judge_views, view_metrics, GeometryMetricOptions, GeometryMetrics, ViewMetrics};
 use crate::geometry::bvh::Bvh;
@@ -192,12 +193,6 @@ pub fn pass_settings(pass: &GeometryPassConfig, labelled: bool) -> GeometryPassC
     }
 }
 
-/// Above this share of the surface facing inward (`geometry::inward_surface`) the pass's mesh is
-/// reported as folded. A healthy hotdog pass measured 0.05 % (ray-parity miscounts), the estimate's
-/// standard error near 0 is below 0.3 % at its 2000 samples, and a folded hotdog pass measured
-/// 17.6 % (docs/geometry.md, *Folds through the surface*).
-pub const FOLD_WARNING_SHARE: f64 = 0.01;
-
 /// The geometry of a run on `dataset` from `source`. A reconstruction's pass holds its normals
 /// to `labels` when given (and its normal prior's weight is not 0).
 pub fn obtain_geometry(spec: &SceneSpec, dataset: &Dataset, source: GeometrySource, pass: &GeometryPassConfig, labels: Option<&PassLabels>, progress: bool) -> Result<GeometryOutcome> {
@@ -306,7 +301,7 @@ fn reconstruct(dataset: &Dataset, pass: &GeometryPassConfig, labels: Option<&Pas
     let views = geometry_views(dataset, labels.as_deref())?;
     let resolution = [views[0].camera.width, views[0].camera.height];
     let result = run_geometry_pass(&hull.mesh, &views, pass, progress).context("geometry pass")?;
-    if let Some(share) = result.stages.last().and_then(|s| s.inward_share_at_end).filter(|&s| s > FOLD_WARNING_SHARE) {
+    if let Some(share) = result.stages.last().and_then(|s| s.inward_share_at_end).filter(|&s| s > FOLDED_SHARE) {
         eprintln!(
             "warning: geometry pass: {:.1} % of the reconstructed surface faces into the mesh, which has folded through \
              itself; the fold's surface lies inside the object and can spoil the shading normals near it (docs/geometry.md, \
