@@ -533,11 +533,10 @@ type Remeshed = (Mesh, Vec<Vec3>, String);
 /// takes the colour interpolated at its closest point on that mesh. `Err` with the reason when the
 /// remesher's result is not a clean closed surface (the stage then keeps the old mesh).
 fn remesh_stage(surface: &Mesh, colour: (&Mesh, &[Vec3]), target_edge: f64) -> Result<std::result::Result<Remeshed, String>> {
-    let mesh = surface;
     let (mut outcome, mut problems) = (None, Vec::new());
     for flips in [true, false] {
-        let (p, t) = isotropic_remesh(&mesh.positions, &mesh.triangles, target_edge as f32, REMESH_ROUNDS, flips)?;
-        let mut m = mesh.clone();
+        let (p, t) = isotropic_remesh(&surface.positions, &surface.triangles, target_edge as f32, REMESH_ROUNDS, flips)?;
+        let mut m = surface.clone();
         m.normals = vec![Vec3::Z; p.len()];
         m.uvs = vec![Vec2::ZERO; p.len()];
         m.triangle_part = vec![0; t.len()];
