@@ -28,7 +28,8 @@
 //!
 //! **Surface.** The level set is meshed closed and manifold and its largest piece kept
 //! (`iso_surface.rs`): cavities drop away. Marching cubes can leave an edge shared by four triangles
-//! on some grids; the grid is then shifted by part of a voxel and sampled again (`GRID_SHIFTS`).
+//! on some grids; the sheets are parted there, and should the surface still be broken the grid is
+//! shifted by part of a voxel and sampled again (`GRID_SHIFTS`).
 
 use anyhow::{bail, Context, Result};
 use glam::Vec3;
@@ -39,7 +40,7 @@ use super::iso_surface::{closed_level_surface, FieldGrid, LevelSurface};
 use super::Mesh;
 
 /// Grid points at most (256³): the grid holds a value per point (64 MiB) and marching cubes visits
-/// each; a finer voxel than asked is coarsened to stay within it, and the summary says so.
+/// each; a finer voxel than asked is coarsened to stay within it (`EnclosedSurface::voxel`).
 pub const MAX_GRID_POINTS: usize = 1 << 24;
 
 /// Shifts of the grid's origin, in voxels along the diagonal, tried in turn until marching cubes
@@ -85,8 +86,9 @@ pub fn enclosed_surface(mesh: &Mesh, voxel: f32) -> Result<EnclosedSurface> {
     }
     let bvh = Bvh::build(mesh);
     // baby_shark's marching cubes leaves an edge shared by four triangles on some fields (seen on
-    // folded hotdog meshes: one edge in some 200 000 triangles, and which edge depends on the
-    // last bits of the input); the same solid sampled on a grid shifted by part of a voxel does not.
+    // folded hotdog meshes: one edge in some 200 000 triangles, and which edge depends on the last
+    // bits of the input). iso_surface parts such sheets; should a surface still come out broken, the
+    // same solid sampled on a grid shifted by part of a voxel is another draw of those last bits.
     let mut failures = Vec::new();
     for (attempt, shift) in GRID_SHIFTS.iter().enumerate() {
         let dims = points(h).map(|d| d + 1);

@@ -1,13 +1,14 @@
 //! The closed surface where a field sampled on a regular grid crosses zero (negative inside): the
 //! step shared by the visual hull (its field is the masks' cones) and the repair of a folded mesh
-//! (its field is the signed distance to what the mesh encloses, `enclosed_surface.rs`).
+//! (its field is the filtered inside/outside of what the mesh encloses, `enclosed_surface.rs`).
 //!
-//! baby_shark's marching cubes 33 meshes the level set: it is topologically correct, so the surface
-//! comes out closed and manifold (fast-surface-nets is faster but can join sheets at a vertex, and the
-//! remesher that follows needs a manifold). What it still leaves is mended and counted: a vertex shared
-//! by two fans where two sheets touch is split, only the largest connected piece is kept (specks, and
-//! cavities, which neither caller wants), the few triangles wound against their neighbours are turned,
-//! and the whole is turned to face outward. The result is checked to be a closed manifold.
+//! baby_shark's marching cubes 33 meshes the level set. It resolves the ambiguous cube
+//! configurations, so the surface comes out closed (fast-surface-nets is faster but can join sheets
+//! at a vertex, and the remesher that follows needs a manifold). What it still leaves is mended and
+//! counted: where two sheets touch at a vertex or along an edge they are parted (a copy of the
+//! vertex per sheet), only the largest connected piece is kept (specks, and cavities, which neither
+//! caller wants), the few triangles wound against their neighbours are turned, and the whole is
+//! turned to face outward. The result is checked to be a closed manifold.
 
 use std::collections::HashMap;
 
