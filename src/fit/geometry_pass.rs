@@ -536,13 +536,7 @@ fn remesh_stage(surface: &Mesh, colour: (&Mesh, &[Vec3]), target_edge: f64) -> R
     let (mut outcome, mut problems) = (None, Vec::new());
     for flips in [true, false] {
         let (p, t) = isotropic_remesh(&surface.positions, &surface.triangles, target_edge as f32, REMESH_ROUNDS, flips)?;
-        let mut m = surface.clone();
-        m.normals = vec![Vec3::Z; p.len()];
-        m.uvs = vec![Vec2::ZERO; p.len()];
-        m.triangle_part = vec![0; t.len()];
-        m.positions = p;
-        m.triangles = t;
-        m.recompute_normals();
+        let m = surface.with_geometry(p, t);
         let degenerate = degenerate_triangles(&m, target_edge);
         // A few needles are tolerated (they cover no pixel centre and the step holds their vertices
         // rather than shrink them further; see `optim::guarded_step`), more than 1 in 1000 triangles is not.
@@ -722,13 +716,14 @@ pub fn run_geometry_pass(start: &Mesh, views: &[GeometryView], config: &Geometry
             let kd = state.vertex_kd()?;
             let (unfolded, repair) = unfold(&mesh, share, edges[s]);
             let remeshed = remesh_stage(unfolded.as_ref().unwrap_or(&mesh), (&mesh, &kd), edges[s]).with_context(|| format!("geometry pass: remeshing before iteration {it}"))?;
-            let note = match remeshed {
+            let remesh_note = match remeshed {
                 Ok((new, kd, note)) => {
                     state = StageState::new(new, &kd, &light, config, schedule, it)?;
-                    [repair, note].into_iter().filter(|n| !n.is_empty()).collect::<Vec<_>>().join("; ")
+                    note
                 }
-                Err(why) => [repair, why].into_iter().filter(|n| !n.is_empty()).collect::<Vec<_>>().join("; "),
+                Err(why) => why,
             };
+            let note = [repair, remesh_note].into_iter().filter(|n| !n.is_empty()).collect::<Vec<_>>().join("; ");
             if stage_scale(s) != stage_scale(s - 1) {
                 targets = view_targets(views, stage_scale(s))?;
             }

@@ -95,15 +95,7 @@ pub fn enclosed_surface(mesh: &Mesh, voxel: f32) -> Result<EnclosedSurface> {
         let origin = lo - Vec3::splat((PAD as f32 + shift) * h);
         match sample_and_mesh(mesh, &bvh, origin, h, dims) {
             Ok((LevelSurface { positions, triangles, marched, .. }, inside_points)) => {
-                let n = positions.len();
-                let mut out = mesh.clone();
-                out.normals = vec![Vec3::Z; n];
-                out.uvs = vec![glam::Vec2::ZERO; n];
-                out.triangle_part = vec![0; triangles.len()];
-                out.positions = positions;
-                out.triangles = triangles;
-                out.recompute_normals();
-                return Ok(EnclosedSurface { mesh: out, voxel: h, dims, inside_points, marched, attempts: attempt + 1 });
+                return Ok(EnclosedSurface { mesh: mesh.with_geometry(positions, triangles), voxel: h, dims, inside_points, marched, attempts: attempt + 1 });
             }
             Err(e) => failures.push(format!("{e:#}")),
         }

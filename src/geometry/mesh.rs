@@ -42,6 +42,23 @@ impl Mesh {
         self.materials.extend(other.materials);
     }
 
+    /// A one-part mesh with this mesh's parts and materials on new geometry (every triangle in part
+    /// 0, no UVs, normals from the triangles): what a remesh or a re-extraction of a one-part mesh gives.
+    pub fn with_geometry(&self, positions: Vec<Vec3>, triangles: Vec<[u32; 3]>) -> Mesh {
+        let n = positions.len();
+        let mut mesh = Mesh {
+            positions,
+            normals: vec![Vec3::Z; n],
+            uvs: vec![Vec2::ZERO; n],
+            triangle_part: vec![0; triangles.len()],
+            triangles,
+            parts: self.parts.clone(),
+            materials: self.materials.clone(),
+        };
+        mesh.recompute_normals();
+        mesh
+    }
+
     /// Axis-aligned bounds (min, max) of all vertex positions; `None` for an empty mesh.
     pub fn bounds(&self) -> Option<(Vec3, Vec3)> {
         let first = *self.positions.first()?;
