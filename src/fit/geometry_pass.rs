@@ -246,7 +246,7 @@ fn full_resolution() -> f64 {
 }
 
 pub struct GeometryPassResult {
-    /// The optimised mesh (same connectivity as the start; normals recomputed).
+    /// The optimised mesh (the last stage's connectivity; normals recomputed).
     pub mesh: Mesh,
     /// Per-vertex base colour and the SH light at the end.
     pub vertex_kd: Vec<Vec3>,

@@ -22,20 +22,27 @@
 //! thins to nothing, and marching cubes on the raw inside/outside, or on it signed with the exact
 //! distance to the mesh, leaves there slivers and zero-area triangles that the remesher cannot mend
 //! (on a folded hotdog mesh, 191–776 degenerate triangles after the remesh; 0 after the filter). The
-//! price: the surface passes midway between the inside and outside points, within half a voxel of
-//! the boundary, and a part thinner than two voxels is lost. The geometry pass samples at half its
-//! next stage's edge, so that is a part thinner than one triangle edge.
+//! price: the level set passes midway between the inside and outside points, within about a voxel
+//! of the boundary (refunded below), and a part thinner than two voxels is lost. The geometry pass
+//! samples at half its next stage's edge, so that is a part thinner than one triangle edge.
 //!
 //! **Surface.** The level set is meshed closed and manifold and its largest piece kept
 //! (`iso_surface.rs`): cavities drop away. Marching cubes can leave an edge shared by four triangles
 //! on some grids; the sheets are parted there, and should the surface still be broken the grid is
 //! shifted by part of a voxel and sampled again (`GRID_SHIFTS`).
+//!
+//! **Back onto the mesh.** The boundary of what the mesh encloses is made of pieces of the mesh's
+//! own triangles (those with the outside just in front and the inside just behind), so the level
+//! set's offset need not be kept: each of its vertices moves to its closest point on those triangles
+//! when that lies within a voxel and faces the same way (`snap_to_surface`). Parts thinner than two
+//! voxels stay lost: the grid never saw them inside.
 
 use anyhow::{bail, Context, Result};
 use glam::Vec3;
 use rayon::prelude::*;
 
 use super::bvh::Bvh;
+use super::closest_point::SurfaceQuery;
 use super::iso_surface::{closed_level_surface, FieldGrid, LevelSurface};
 use super::Mesh;
 
@@ -64,6 +71,8 @@ pub struct EnclosedSurface {
     pub marched: usize,
     /// Grids tried (`GRID_SHIFTS`), the last one giving the surface.
     pub attempts: usize,
+    /// Vertices moved back onto the input mesh's surface (`snap_to_surface`).
+    pub snapped: usize,
 }
 
 /// The boundary of what `mesh` (closed, possibly crossing itself) encloses, sampled at `voxel`.
@@ -95,7 +104,9 @@ pub fn enclosed_surface(mesh: &Mesh, voxel: f32) -> Result<EnclosedSurface> {
         let origin = lo - Vec3::splat((PAD as f32 + shift) * h);
         match sample_and_mesh(mesh, &bvh, origin, h, dims) {
             Ok((LevelSurface { positions, triangles, marched, .. }, inside_points)) => {
-                return Ok(EnclosedSurface { mesh: mesh.with_geometry(positions, triangles), voxel: h, dims, inside_points, marched, attempts: attempt + 1 });
+                let mut surface = mesh.with_geometry(positions, triangles);
+                let snapped = snap_to_surface(&mut surface, mesh, &bvh, h)?;
+                return Ok(EnclosedSurface { mesh: surface, voxel: h, dims, inside_points, marched, attempts: attempt + 1, snapped });
             }
             Err(e) => failures.push(format!("{e:#}")),
         }
@@ -154,6 +165,99 @@ fn sample_and_mesh(mesh: &Mesh, bvh: &Bvh, origin: Vec3, h: f32, dims: [usize; 3
     Ok((surface, inside_points))
 }
 
+/// The extracted surface's vertices moved back onto the input mesh's triangles that bound what it
+/// encloses (`boundary_triangles`): each to its closest point there, when that point lies within
+/// `reach` (one voxel) and its triangle faces within 60° of the extracted surface's normal at the
+/// vertex. Returns how many moved.
+///
+/// Why: the boundary of what a mesh encloses is made of pieces of the mesh's own triangles, so away
+/// from the lines where sheets cross, the exact surface is known; the filtered level set passes up
+/// to about a voxel from it (half a voxel on flat parts, more where it rounds an edge). Moving each
+/// vertex back refunds that price where the mesh can be trusted. A vertex whose closest point faces
+/// another way (across a thin part, or at a crease where two sheets cross) stays where marching
+/// cubes put it. A triangle the move would turn over or collapse (its normal no longer within 90°
+/// of its unmoved one) has its vertices put back, until none is.
+fn snap_to_surface(surface: &mut Mesh, mesh: &Mesh, bvh: &Bvh, reach: f32) -> Result<usize> {
+    // Off the triangle by a thousandth of the reach; hits stepped over as along the grid's lines.
+    let boundary = boundary_triangles(mesh, bvh, 1e-3 * reach, 1e-4 * reach);
+    let bounding = mesh.with_geometry(mesh.positions.clone(), mesh.triangles.iter().zip(&boundary).filter(|(_, &b)| b).map(|(t, _)| *t).collect());
+    if bounding.triangles.is_empty() {
+        return Ok(0);
+    }
+    let query = SurfaceQuery::new(&bounding).context("enclosed surface: moving the vertices back onto the mesh")?;
+    let min_cos = 0.5; // 60°: the crossing sheets of a fold meet at larger angles than the level set's own normals err.
+    let before = surface.positions.clone();
+    let normals = surface.normals.clone();
+    let mut moved: Vec<bool> = surface
+        .positions
+        .par_iter_mut()
+        .zip(&normals)
+        .map(|(p, n)| match query.closest(*p) {
+            Some(c) if c.distance <= reach && bounding.face_normal_scaled(c.triangle as usize).normalize_or_zero().dot(*n) >= min_cos => {
+                *p = c.point;
+                true
+            }
+            _ => false,
+        })
+        .collect();
+    loop {
+        let mut reverted = false;
+        for &[a, b, c] in &surface.triangles {
+            let [a, b, c] = [a as usize, b as usize, c as usize];
+            if !(moved[a] || moved[b] || moved[c]) {
+                continue;
+            }
+            let unmoved = (before[b] - before[a]).cross(before[c] - before[a]);
+            let now = (surface.positions[b] - surface.positions[a]).cross(surface.positions[c] - surface.positions[a]);
+            if now.dot(unmoved) <= 1e-3 * unmoved.length_squared() {
+                for v in [a, b, c] {
+                    surface.positions[v] = before[v];
+                    reverted |= std::mem::replace(&mut moved[v], false);
+                }
+            }
+        }
+        if !reverted {
+            break;
+        }
+    }
+    surface.recompute_normals();
+    Ok(moved.iter().filter(|&&m| m).count())
+}
+
+/// The mesh's surface crossings along the ray `start + t·dir`, in order, as (t, +1 where the ray
+/// leaves the solid through a triangle facing along it / −1 where it enters); the winding number at
+/// a point of the ray is the sum of the crossings beyond it. Each hit is stepped over by `step`.
+fn crossings(mesh: &Mesh, bvh: &Bvh, start: Vec3, dir: Vec3, step: f32) -> Vec<(f32, i32)> {
+    let mut crossings = Vec::new();
+    let mut tmin = 0.0;
+    while crossings.len() < MAX_CROSSINGS {
+        let Some(hit) = bvh.closest_hit(start, dir, tmin, f32::INFINITY) else { break };
+        let facing = mesh.face_normal_scaled(hit.triangle as usize).dot(dir);
+        if facing != 0.0 {
+            crossings.push((hit.t, if facing > 0.0 { 1i32 } else { -1 }));
+        }
+        tmin = hit.t + step;
+    }
+    crossings
+}
+
+/// Whether each triangle of `mesh` bounds what it encloses: the winding number is 0 just in front
+/// of its centre and not 0 just behind it (`offset` away, counted along its normal each way). A
+/// sheet pushed into the solid fails the first, one of two sheets lying on each other the second.
+/// Crossings along the way are stepped over by `step`.
+fn boundary_triangles(mesh: &Mesh, bvh: &Bvh, offset: f32, step: f32) -> Vec<bool> {
+    (0..mesh.triangles.len())
+        .into_par_iter()
+        .map(|t| {
+            let [a, b, c] = mesh.triangle_positions(t);
+            let Some(n) = (b - a).cross(c - a).try_normalize() else { return false };
+            let centre = (a + b + c) / 3.0;
+            let winding = |side: f32| crossings(mesh, bvh, centre + side * offset * n, side * n, step).iter().map(|c| c.1).sum::<i32>();
+            winding(1.0) == 0 && winding(-1.0) != 0
+        })
+        .collect()
+}
+
 /// Whether each grid point on one line along `axis` is inside (winding number ≠ 0). `fixed` holds
 /// the other two axes and the line's index along each.
 fn line_inside(mesh: &Mesh, bvh: &Bvh, origin: Vec3, h: f32, points: usize, axis: usize, fixed: [(usize, usize); 2]) -> Vec<bool> {
@@ -166,18 +270,7 @@ fn line_inside(mesh: &Mesh, bvh: &Bvh, origin: Vec3, h: f32, points: usize, axis
     start[axis] -= h;
     let mut dir = Vec3::ZERO;
     dir[axis] = 1.0;
-    // Crossings as (t, +1 leaving the solid / −1 entering), in order along the ray.
-    let mut crossings = Vec::new();
-    let mut tmin = 0.0;
-    let step = 1e-4 * h;
-    while crossings.len() < MAX_CROSSINGS {
-        let Some(hit) = bvh.closest_hit(start, dir, tmin, f32::INFINITY) else { break };
-        let facing = mesh.face_normal_scaled(hit.triangle as usize)[axis];
-        if facing != 0.0 {
-            crossings.push((hit.t, if facing > 0.0 { 1i32 } else { -1 }));
-        }
-        tmin = hit.t + step;
-    }
+    let crossings = crossings(mesh, bvh, start, dir, 1e-4 * h);
     // The winding number at t is the sum of the signed crossings beyond t.
     let mut inside = vec![false; points];
     let mut winding: i32 = crossings.iter().map(|c| c.1).sum();
@@ -226,7 +319,47 @@ mod tests {
         // The icospheres are inscribed (volume 1.5 % below the spheres') and the grid adds its own.
         let v = signed_volume(&out.mesh);
         assert!((v / union - 1.0).abs() < 0.03, "volume {v} against the union's {union}");
+        // Away from the circle where the spheres cross, the vertices sit on the input's triangles
+        // again, not half a voxel off them.
+        let query = SurfaceQuery::new(&mesh)?;
+        let off: Vec<f32> = out.mesh.positions.iter().map(|&p| query.closest(p).map_or(f32::INFINITY, |c| c.distance)).collect();
+        let on = off.iter().filter(|&&d| d < 1e-5).count() as f64 / off.len() as f64;
+        assert!(on > 0.9 && out.snapped as f64 >= on * off.len() as f64, "{:.1} % of the vertices on the input surface ({} snapped)", 100.0 * on, out.snapped);
+        let worst = off.iter().fold(0.0f32, |a, &b| a.max(b));
+        assert!(worst < 0.04, "a vertex {worst} off the input surface");
         Ok(())
+    }
+
+    /// The triangles that bound the union of two crossing spheres are those outside the other
+    /// sphere; a sheet inside the solid and a cavity's wall (facing into it) bound nothing.
+    #[test]
+    fn the_boundary_triangles_are_those_outside_the_other_sphere() {
+        let centres = [Vec3::ZERO, Vec3::new(1.0, 0.0, 0.0)];
+        let mut mesh = icosphere(centres[0], 1.0, 3);
+        let first = mesh.triangles.len();
+        mesh.append(icosphere(centres[1], 1.0, 3));
+        let boundary = boundary_triangles(&mesh, &Bvh::build(&mesh), 1e-5, 1e-6);
+        let mut judged = 0;
+        for (t, &b) in boundary.iter().enumerate() {
+            let other = centres[if t < first { 1 } else { 0 }];
+            let inside = mesh.triangle_positions(t).map(|p| p.distance(other) < 1.0);
+            // A triangle across the other sphere's surface is partly both.
+            if inside.iter().all(|&i| i == inside[0]) {
+                assert_eq!(b, !inside[0], "triangle {t}");
+                judged += 1;
+            }
+        }
+        assert!(judged * 10 > boundary.len() * 9, "only {judged} of {} triangles judged", boundary.len());
+
+        let mut cavity = icosphere(Vec3::ZERO, 1.0, 2);
+        let outer = cavity.triangles.len();
+        cavity.append(inverted(icosphere(Vec3::ZERO, 0.5, 2)));
+        cavity.append(icosphere(Vec3::new(0.0, 0.0, 0.7), 0.1, 1));
+        let boundary = boundary_triangles(&cavity, &Bvh::build(&cavity), 1e-5, 1e-6);
+        let inner = icosphere(Vec3::ZERO, 0.5, 2).triangles.len();
+        assert!(boundary[..outer].iter().all(|&b| b), "the outer sphere bounds the solid");
+        assert!(boundary[outer..outer + inner].iter().all(|&b| b), "the cavity's wall bounds the solid (outside just in front of it)");
+        assert!(boundary[outer + inner..].iter().all(|&b| !b), "a sheet inside the solid bounds nothing");
     }
 
     /// A sheet (a sphere facing out) inside a sphere disappears; a sphere turned inside out inside
