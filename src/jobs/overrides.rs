@@ -24,6 +24,9 @@ pub struct SettingOverrides {
     pub texture_res: Option<usize>,
     #[arg(long)]
     pub light_res: Option<usize>,
+    /// Seed of the run's random draws: the material pass's views and samples, the simulated
+    /// labels' errors, and the geometry pass's view order (so two seeds are two independent runs,
+    /// geometry included).
     #[arg(long)]
     pub seed: Option<u64>,
     /// Adam learning rate of the kd/ks textures.
@@ -93,9 +96,11 @@ impl SettingOverrides {
         fit
     }
 
-    /// The geometry pass settings.
+    /// The geometry pass settings: its own options, and `--seed`, which seeds its view order too.
     pub fn geometry_pass(&self) -> GeometryPassConfig {
-        self.geometry.geometry_pass()
+        let mut pass = self.geometry.geometry_pass();
+        if let Some(v) = self.seed { pass.seed = v; }
+        pass
     }
 }
 
@@ -137,5 +142,9 @@ mod tests {
         assert_eq!(geometry(GeometryPassOverrides { geometry_iterations: Some(3), ..Default::default() }).iterations, 3);
         let pass = geometry(GeometryPassOverrides { geometry_normal_prior: Some(0.0), ..Default::default() });
         assert_eq!(GeometryPassConfig { normal_prior: 0.0, ..GeometryPassConfig::default() }, pass);
+        // One seed for the whole run: the material pass's and the geometry pass's draws.
+        let seeded = SettingOverrides { seed: Some(3), ..Default::default() };
+        assert_eq!((seeded.fit_config(None).seed, seeded.geometry_pass().seed), (3, 3));
+        assert_eq!(SettingOverrides::default().geometry_pass().seed, GeometryPassConfig::default().seed);
     }
 }
