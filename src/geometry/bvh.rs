@@ -253,6 +253,18 @@ impl Bvh {
         self.closest_hit_using(NodeTest::Obvhs, origin, dir, tmin, tmax)
     }
 
+    /// Every hit along `origin + t·dir` from `tmin` on, nearest first: each the closest hit beyond
+    /// the previous one's t + `step` (so a ray through a shared edge may report it once or twice).
+    /// What ray-parity and winding-number counts walk (`inward_surface`, `enclosed_surface`).
+    pub fn hits_along(&self, origin: Vec3, dir: Vec3, tmin: f32, step: f32) -> impl Iterator<Item = Hit> + '_ {
+        let mut tmin = tmin;
+        std::iter::from_fn(move || {
+            let hit = self.closest_hit(origin, dir, tmin, f32::INFINITY)?;
+            tmin = hit.t + step;
+            Some(hit)
+        })
+    }
+
     /// Whether anything lies on the segment t in [tmin, tmax] (occlusion; stops at the first hit).
     pub fn any_hit(&self, origin: Vec3, dir: Vec3, tmin: f32, tmax: f32) -> bool {
         self.any_hit_using(self.node_test, origin, dir, tmin, tmax)

@@ -187,11 +187,10 @@ fn snap_to_surface(surface: &mut Mesh, mesh: &Mesh, bvh: &Bvh, reach: f32) -> Re
     let query = SurfaceQuery::new(&bounding).context("enclosed surface: moving the vertices back onto the mesh")?;
     let min_cos = 0.5; // 60°: the crossing sheets of a fold meet at larger angles than the level set's own normals err.
     let before = surface.positions.clone();
-    let normals = surface.normals.clone();
     let mut moved: Vec<bool> = surface
         .positions
         .par_iter_mut()
-        .zip(&normals)
+        .zip(&surface.normals)
         .map(|(p, n)| match query.closest(*p) {
             Some(c) if c.distance <= reach && bounding.face_normal_scaled(c.triangle as usize).normalize_or_zero().dot(*n) >= min_cos => {
                 *p = c.point;
@@ -228,17 +227,13 @@ fn snap_to_surface(surface: &mut Mesh, mesh: &Mesh, bvh: &Bvh, reach: f32) -> Re
 /// leaves the solid through a triangle facing along it / −1 where it enters); the winding number at
 /// a point of the ray is the sum of the crossings beyond it. Each hit is stepped over by `step`.
 fn crossings(mesh: &Mesh, bvh: &Bvh, start: Vec3, dir: Vec3, step: f32) -> Vec<(f32, i32)> {
-    let mut crossings = Vec::new();
-    let mut tmin = 0.0;
-    while crossings.len() < MAX_CROSSINGS {
-        let Some(hit) = bvh.closest_hit(start, dir, tmin, f32::INFINITY) else { break };
-        let facing = mesh.face_normal_scaled(hit.triangle as usize).dot(dir);
-        if facing != 0.0 {
-            crossings.push((hit.t, if facing > 0.0 { 1i32 } else { -1 }));
-        }
-        tmin = hit.t + step;
-    }
-    crossings
+    bvh.hits_along(start, dir, 0.0, step)
+        .filter_map(|hit| {
+            let facing = mesh.face_normal_scaled(hit.triangle as usize).dot(dir);
+            (facing != 0.0).then(|| (hit.t, if facing > 0.0 { 1i32 } else { -1 }))
+        })
+        .take(MAX_CROSSINGS)
+        .collect()
 }
 
 /// Whether each triangle of `mesh` bounds what it encloses: the winding number is 0 just in front

@@ -54,14 +54,8 @@ pub fn inward_share(mesh: &Mesh, bvh: &Bvh, samples: usize, seed: u64) -> Result
 
 /// Whether the ray from `origin` along `dir` crosses the surface an odd number of times.
 fn odd_crossings(bvh: &Bvh, origin: Vec3, dir: Vec3, eps: f32) -> bool {
-    let mut tmin = eps;
-    for crossings in 0..MAX_CROSSINGS {
-        match bvh.closest_hit(origin, dir, tmin, f32::INFINITY) {
-            Some(hit) => tmin = hit.t + eps,
-            None => return crossings % 2 == 1,
-        }
-    }
-    true
+    let crossings = bvh.hits_along(origin, dir, eps, eps).take(MAX_CROSSINGS).count();
+    crossings == MAX_CROSSINGS || crossings % 2 == 1
 }
 
 #[cfg(test)]
