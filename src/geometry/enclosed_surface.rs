@@ -230,7 +230,7 @@ fn crossings(mesh: &Mesh, bvh: &Bvh, start: Vec3, dir: Vec3, step: f32) -> Vec<(
     bvh.hits_along(start, dir, 0.0, step)
         .filter_map(|hit| {
             let facing = mesh.face_normal_scaled(hit.triangle as usize).dot(dir);
-            (facing != 0.0).then(|| (hit.t, if facing > 0.0 { 1i32 } else { -1 }))
+            (facing != 0.0).then_some((hit.t, if facing > 0.0 { 1i32 } else { -1 }))
         })
         .take(MAX_CROSSINGS)
         .collect()
