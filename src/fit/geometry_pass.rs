@@ -613,13 +613,15 @@ const KD_SMOOTHNESS: f64 = 0.1;
 /// λ of Large Steps' (I + λL) in the pass. An update spreads over about √λ vertex rings
 /// (`optim::large_steps`); at the last stage's edge of 1.5 pixels the paper's default 19 spreads
 /// it over some 6 pixels, wider than the details the shading must grow inside the outline (a
-/// bun's crease, a blob of sauce on a plate), which then never form. λ = 2 spreads it over about
-/// 2 pixels, the finest the 1.5-pixel edge can use. Measured on the default scene and the hotdog
-/// (docs/geometry.md): 19 → 5 → 2 lowers the test-view normal error on both (16.5° → 12.0° → 9.7°
-/// and 16.3° → 12.4° → 11.6°). λ = 1, now that the step guard holds slivers back, runs through:
-/// 8.7° on the default scene, but 13.3° on the hotdog, whose F-score falls below issue 11's 0.90
-/// (0.859). So 2 stays.
-pub const GEOMETRY_LAMBDA: f64 = 2.0;
+/// bun's crease, a blob of sauce on a plate), which then never form. Measured on the default scene
+/// and the hotdog (docs/geometry.md): 19 → 5 → 2 lowered the test-view normal error on both
+/// (16.5° → 12.0° → 9.7° and 16.3° → 12.4° → 11.6°). λ = 1 spreads an update over about one ring,
+/// 1.5 pixels: once the first stage's folds were repaired and the labels' normals held the last
+/// stage, it placed the hotdog's surface closer at each of three seeds (Chamfer (visible) −0.0002
+/// to −0.0004) and relit it 0.6 dB better on average (gap to known geometry 3.4 → 2.8 dB), the
+/// default scene equal or better in every row, and without labels the hotdog's pass the same
+/// (0.0027 / 0.937 / 0.949 / 10.69° against 0.0028 / 0.931 / 0.955 / 10.66°).
+pub const GEOMETRY_LAMBDA: f64 = 1.0;
 
 /// Weight of the normal prior in the pass's last stage (`GeometryPassConfig::normal_prior`). The
 /// prior is ‖n − label‖² ≈ θ² (θ the angle to the label), beside an L1 colour loss of a few
