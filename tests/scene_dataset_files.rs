@@ -196,6 +196,16 @@ fn missing_dataset_or_view_folder_is_named() {
 }
 
 #[test]
+fn an_unknown_view_name_is_refused_listing_the_views_there_are() {
+    let root = nerfactor_dataset("viewname", false);
+    let ds = Dataset::load(&root).unwrap();
+    assert_eq!(ds.view("val_000").unwrap().name, "val_000");
+    let msg = error_text(ds.view("test_000"));
+    assert!(msg.contains("\"test_000\"") && msg.contains(&root.display().to_string()), "{msg}");
+    assert!(msg.contains("1 test view (test_005)") && msg.contains("2 train views (train_000, train_001)") && msg.contains("1 val view (val_000)"), "{msg}");
+}
+
+#[test]
 fn missing_images_are_named() {
     let root = nerfactor_dataset("noimage", false);
     std::fs::remove_file(root.join("val_000/rgba.png")).unwrap();

@@ -164,11 +164,23 @@ impl Dataset {
         self.train.iter().chain(&self.val).chain(&self.test)
     }
 
-    /// The view called `name` in any split.
+    /// The view called `name` in any split; the error lists the views there are.
     pub fn view(&self, name: &str) -> Result<&View> {
-        self.all_views()
-            .find(|v| v.name == name)
-            .ok_or_else(|| anyhow!("no view named {name:?} in dataset {}", self.root.display()))
+        self.all_views().find(|v| v.name == name).ok_or_else(|| {
+            let split = |label: &str, views: &[View]| match views {
+                [] => format!("no {label} views"),
+                [only] => format!("1 {label} view ({})", only.name),
+                [first, .., last] if views.len() > 8 => format!("{} {label} views ({} … {})", views.len(), first.name, last.name),
+                _ => format!("{} {label} views ({})", views.len(), views.iter().map(|v| v.name.as_str()).collect::<Vec<_>>().join(", ")),
+            };
+            anyhow!(
+                "no view named {name:?} in dataset {}: it has {}, {} and {}",
+                self.root.display(),
+                split("test", &self.test),
+                split("train", &self.train),
+                split("val", &self.val)
+            )
+        })
     }
 }
 
