@@ -122,6 +122,10 @@ struct FrameEntry {
     transform_matrix: [[f32; 4]; 4],
 }
 
+/// A split of up to this many views is listed by name in an error: NeRFactor's test and val splits
+/// (8 views each) in full, a train split of 100 by its first and last view.
+const LISTED_VIEWS: usize = 8;
+
 impl Dataset {
     /// Load `dir/transforms_{train,val,test}.json` and check every view's files.
     /// `transforms_train.json` is required; a missing val or test file gives an empty list.
@@ -164,13 +168,14 @@ impl Dataset {
         self.train.iter().chain(&self.val).chain(&self.test)
     }
 
-    /// The view called `name` in any split; the error lists the views there are.
+    /// The view called `name` in any split; the error lists the views there are (a split of up to
+    /// `LISTED_VIEWS` by name, a longer one by its first and last).
     pub fn view(&self, name: &str) -> Result<&View> {
         self.all_views().find(|v| v.name == name).ok_or_else(|| {
             let split = |label: &str, views: &[View]| match views {
                 [] => format!("no {label} views"),
                 [only] => format!("1 {label} view ({})", only.name),
-                [first, .., last] if views.len() > 8 => format!("{} {label} views ({} … {})", views.len(), first.name, last.name),
+                [first, .., last] if views.len() > LISTED_VIEWS => format!("{} {label} views ({} … {})", views.len(), first.name, last.name),
                 _ => format!("{} {label} views ({})", views.len(), views.iter().map(|v| v.name.as_str()).collect::<Vec<_>>().join(", ")),
             };
             anyhow!(
