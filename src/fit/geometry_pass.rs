@@ -43,7 +43,7 @@ use serde::Serialize;
 use crate::geometry::bvh::Bvh;
 use crate::geometry::closest_point::SurfaceQuery;
 use crate::geometry::enclosed_surface::enclosed_surface;
-use crate::geometry::inward_surface::{inward_share, FOLDED_SHARE, INWARD_SAMPLES};
+use crate::geometry::inward_surface::{inward_share, FOLDED_SHARE, INSIDE_OUT_SHARE, INWARD_SAMPLES};
 use crate::geometry::manifold::{check_closed_manifold, signed_volume};
 use crate::geometry::remesh::isotropic_remesh;
 use crate::geometry::Mesh;
@@ -236,9 +236,20 @@ pub struct StageRecord {
     pub inward_share_at_end: Option<f64>,
 }
 
-/// The share of `mesh`'s surface facing into it (`geometry::inward_surface`), with the pass's seed.
-fn stage_end_inward_share(mesh: &Mesh, seed: u64) -> Result<f64> {
-    inward_share(mesh, &Bvh::build(mesh), INWARD_SAMPLES, seed).context("geometry pass: checking the mesh for folds")
+/// The share of `mesh`'s surface facing into it (`geometry::inward_surface`), with the pass's seed,
+/// at the end of stage `stage` (1-based) before iteration `it`. An error when the mesh has turned
+/// inside out (above [`INSIDE_OUT_SHARE`]): the pass has diverged, and nothing after it would mean
+/// anything.
+fn stage_end_inward_share(mesh: &Mesh, seed: u64, stage: usize, it: usize) -> Result<f64> {
+    let share = inward_share(mesh, &Bvh::build(mesh), INWARD_SAMPLES, seed).context("geometry pass: checking the mesh for folds")?;
+    if share > INSIDE_OUT_SHARE {
+        bail!(
+            "geometry pass: the mesh turned inside out in stage {stage} (before iteration {it}, {:.0} % of its surface faces into it); \
+             the optimisation diverged: lower the position step (step_per_edge) or the loss weights",
+            100.0 * share
+        );
+    }
+    Ok(share)
 }
 
 fn full_resolution() -> f64 {
@@ -712,7 +723,7 @@ pub fn run_geometry_pass(start: &Mesh, views: &[GeometryView], config: &Geometry
         if let Some(s) = stage_starts.iter().skip(1).position(|&first| first == it).map(|k| k + 1) {
             let t = Instant::now();
             let mesh = state.mesh();
-            let share = stage_end_inward_share(&mesh, config.seed)?;
+            let share = stage_end_inward_share(&mesh, config.seed, s, it)?;
             if let Some(ended) = stages.last_mut() {
                 ended.inward_share_at_end = Some(share);
             }
@@ -828,9 +839,10 @@ pub fn run_geometry_pass(start: &Mesh, views: &[GeometryView], config: &Geometry
     }
     bar.finish();
     let mesh = state.mesh();
+    let stages_len = stages.len();
     if let Some(last) = stages.last_mut() {
         let t = Instant::now();
-        last.inward_share_at_end = Some(stage_end_inward_share(&mesh, config.seed)?);
+        last.inward_share_at_end = Some(stage_end_inward_share(&mesh, config.seed, stages_len, config.iterations)?);
         timings.remesh += t.elapsed().as_secs_f64();
     }
     let vertex_kd = state.vertex_kd()?;
@@ -962,20 +974,40 @@ mod tests {
     /// A stage boundary's repair: a folded mesh (a sphere with a second one inside it, whose whole
     /// surface faces into the first) comes out as the outer sphere alone, and its colour carries over
     /// through the remesh; a healthy mesh is left to the remesh as it is.
+    /// A mesh turned inside out at a stage's end stops the pass with an error naming the stage
+    /// and the iteration, where a fold (below half the surface) is left to the repair.
+    #[test]
+    fn a_mesh_turned_inside_out_stops_the_pass_naming_the_stage_and_iteration() -> Result<()> {
+        use crate::geometry::icosphere::icosphere;
+        let mut inverted = icosphere(Vec3::ZERO, 1.0, 3);
+        for t in inverted.triangles.iter_mut() {
+            t.swap(1, 2);
+        }
+        let err = stage_end_inward_share(&inverted, 0, 2, 2000).expect_err("an inside-out mesh must stop the pass");
+        let text = format!("{err:#}");
+        assert!(text.contains("inside out in stage 2") && text.contains("iteration 2000"), "{text}");
+
+        let mut folded = icosphere(Vec3::ZERO, 1.0, 3);
+        folded.append(icosphere(Vec3::new(0.1, 0.0, 0.0), 0.5, 3));
+        let share = stage_end_inward_share(&folded, 0, 2, 2000)?;
+        assert!(share > FOLDED_SHARE && share < INSIDE_OUT_SHARE, "a fold, not an inversion: {share}");
+        Ok(())
+    }
+
     #[test]
     fn a_folded_stage_mesh_is_unfolded_and_keeps_its_colour() -> Result<()> {
         use crate::geometry::icosphere::icosphere;
         let outer = icosphere(Vec3::ZERO, 1.0, 3);
-        let (healthy, note) = unfold(&outer, stage_end_inward_share(&outer, 0)?, 0.1);
+        let (healthy, note) = unfold(&outer, stage_end_inward_share(&outer, 0, 1, 10)?, 0.1);
         assert!(healthy.is_none() && note.is_empty(), "a healthy mesh was changed: {note}");
 
         let mut folded = outer.clone();
         folded.append(icosphere(Vec3::new(0.1, 0.0, 0.0), 0.5, 3));
-        let share = stage_end_inward_share(&folded, 0)?;
+        let share = stage_end_inward_share(&folded, 0, 1, 10)?;
         assert!(share > 0.1, "the inner sphere faces inward: {share}");
         let (unfolded, note) = unfold(&folded, share, 0.1);
         let unfolded = unfolded.with_context(|| format!("the folded mesh was not repaired: {note}"))?;
-        assert!(stage_end_inward_share(&unfolded, 0)? <= FOLDED_SHARE, "{note}");
+        assert!(stage_end_inward_share(&unfolded, 0, 1, 10)? <= FOLDED_SHARE, "{note}");
         // Colour by height on the folded mesh, carried to the remeshed outer sphere.
         let kd: Vec<Vec3> = folded.positions.iter().map(|p| Vec3::splat(0.5 + 0.5 * p.z)).collect();
         let (new, new_kd, _) = remesh_stage(&unfolded, (&folded, &kd), 0.1)?.map_err(anyhow::Error::msg)?;
