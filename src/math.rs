@@ -1,4 +1,5 @@
-//! Small geometric helpers shared by the BRDF, the light and the renderers.
+//! Small numeric helpers shared by the BRDF, the light, the textures and the renderers: a frame
+//! around a normal, and a floor that costs no function call.
 
 use glam::Vec3;
 
@@ -29,9 +30,68 @@ impl Frame {
     }
 }
 
+/// ⌊x⌋, the value of `x.floor()` for every f32 (±0, ±∞ and NaN included), without a call into
+/// libm: x86-64's baseline has no rounding instruction (SSE4.1's `roundss`), so `floor` is a
+/// function call on every texture and light lookup, which a Monte Carlo step's profile showed
+/// (`floor`, `floorf`: 2–3 % of the 4-spp step, 2026-12-08). Below 2²³ the truncating cast is exact
+/// and at most one above the floor; from there on every f32 is an integer (or ±∞, NaN), its own floor.
+#[inline]
+pub fn floor_f32(x: f32) -> f32 {
+    const ALL_INTEGERS: f32 = (1u32 << 23) as f32;
+    if x.abs() < ALL_INTEGERS && x != 0.0 {
+        let t = x as i32 as f32;
+        if t > x {
+            t - 1.0
+        } else {
+            t
+        }
+    } else {
+        x
+    }
+}
+
+/// [`floor_f32`] for f64 (every f64 from 2⁵² on is an integer).
+#[inline]
+pub fn floor_f64(x: f64) -> f64 {
+    const ALL_INTEGERS: f64 = (1u64 << 52) as f64;
+    if x.abs() < ALL_INTEGERS && x != 0.0 {
+        let t = x as i64 as f64;
+        if t > x {
+            t - 1.0
+        } else {
+            t
+        }
+    } else {
+        x
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_floors_are_libm_floor_bit_for_bit() {
+        let mut rng = crate::rng::Sampler::new(11, 0);
+        let mut xs: Vec<f64> = vec![0.0, -0.0, 0.5, -0.5, 1.0, -1.0, 2.5, -2.5, 1e-40, -1e-40, f64::INFINITY, f64::NEG_INFINITY, f64::NAN];
+        for e in [22, 23, 24, 51, 52, 53, 62, 63, 64, 100] {
+            let p = 2f64.powi(e);
+            xs.extend([p, -p, p - 0.5, -(p - 0.5), p + 1.0, -(p + 1.0), p - 1.0, -(p - 1.0)]);
+        }
+        xs.extend((0..50_000).map(|k| (rng.next_f32() as f64 - 0.5) * 2f64.powi(k % 70 - 10)));
+        for &x in &xs {
+            let (f, g) = (x.floor(), floor_f64(x));
+            assert!(f.to_bits() == g.to_bits() || (f.is_nan() && g.is_nan()), "f64 {x:e}: {g:e} against {f:e}");
+            let x = x as f32;
+            let (f, g) = (x.floor(), floor_f32(x));
+            assert!(f.to_bits() == g.to_bits() || (f.is_nan() && g.is_nan()), "f32 {x:e}: {g:e} against {f:e}");
+        }
+        for bits in (0..u32::MAX).step_by(65_521) {
+            let x = f32::from_bits(bits);
+            let (f, g) = (x.floor(), floor_f32(x));
+            assert!(f.to_bits() == g.to_bits() || (f.is_nan() && g.is_nan()), "f32 bits {bits:#x}: {g:e} against {f:e}");
+        }
+    }
 
     #[test]
     fn frame_is_orthonormal_and_round_trips() {

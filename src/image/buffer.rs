@@ -1,5 +1,7 @@
 use glam::{Vec3, Vec4};
 
+use crate::math::floor_f32;
+
 /// An image of `channels` interleaved f32 values per pixel, row 0 at the top.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Image {
@@ -115,7 +117,7 @@ impl Image {
     pub fn bilinear(&self, x: f32, y: f32, out: &mut [f32]) {
         let fx = (x - 0.5).clamp(0.0, (self.width - 1) as f32);
         let fy = (y - 0.5).clamp(0.0, (self.height - 1) as f32);
-        let (x0, y0) = (fx.floor() as usize, fy.floor() as usize);
+        let (x0, y0) = (floor_f32(fx) as usize, floor_f32(fy) as usize);
         let (x1, y1) = ((x0 + 1).min(self.width - 1), (y0 + 1).min(self.height - 1));
         let (tx, ty) = (fx - x0 as f32, fy - y0 as f32);
         for c in 0..self.channels.min(out.len()) {

@@ -23,6 +23,7 @@ use rayon::prelude::*;
 
 use crate::image::Image;
 use crate::light::latlong;
+use crate::math::floor_f32;
 
 /// Face resolution of the cube map a given lat-long probe (a test probe, a dataset's training
 /// probe) is converted to for rendering: the render job, the relighting evaluation and the
@@ -122,7 +123,7 @@ pub fn face_solid_angles(res: usize) -> Vec<f32> {
 
 /// Texel index of the texel containing (s, t) on `face`, clamped to the face.
 pub(crate) fn nearest_index(res: usize, face: usize, s: f32, t: f32) -> usize {
-    let to_k = |c: f32| ((((c + 1.0) * 0.5) * res as f32).floor().max(0.0) as usize).min(res - 1);
+    let to_k = |c: f32| (floor_f32(((c + 1.0) * 0.5) * res as f32).max(0.0) as usize).min(res - 1);
     face * res * res + to_k(t) * res + to_k(s)
 }
 

@@ -6,6 +6,7 @@ use std::sync::Arc;
 use glam::{Vec2, Vec3};
 
 use crate::image::Image;
+use crate::math::floor_f32;
 
 /// Base colour: a constant or a texture (linear RGB in memory, looked up bilinearly, wrapping).
 #[derive(Clone, Debug)]
@@ -87,8 +88,8 @@ pub struct SurfaceParams {
 /// Bilinear lookup of a part texture at `uv`: wraps like a repeating texture and flips v (row 0
 /// is the top of the image, v = 0 the bottom).
 fn lookup(img: &Image, uv: Vec2, out: &mut [f32]) {
-    let u = uv.x - uv.x.floor();
-    let v = 1.0 - (uv.y - uv.y.floor());
+    let u = uv.x - floor_f32(uv.x);
+    let v = 1.0 - (uv.y - floor_f32(uv.y));
     img.bilinear(u * img.width as f32, v * img.height as f32, out);
 }
 

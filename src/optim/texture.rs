@@ -12,6 +12,7 @@ use candle_core::{Result, Tensor};
 use rayon::prelude::*;
 
 use super::tape::{apply, scatter_add_banded, Kernel, Real};
+use crate::math::floor_f64;
 use crate::rng::Sampler;
 
 /// The four (flat texel index, weight) taps of a wrapped bilinear lookup at `uv` in a w×h texture.
@@ -19,10 +20,8 @@ use crate::rng::Sampler;
 pub fn bilinear_taps(uv: [f32; 2], w: usize, h: usize) -> [(usize, f64); 4] {
     let x = uv[0] as f64 * w as f64 - 0.5;
     let y = (1.0 - uv[1] as f64) * h as f64 - 0.5;
-    let (fx, fy) = (x.floor(), y.floor());
-    let (tx, ty) = (x - fx, y - fy);
-    let x0 = (fx as i64).rem_euclid(w as i64) as usize;
-    let y0 = (fy as i64).rem_euclid(h as i64) as usize;
+    let (x0, tx) = wrapped_floor(x, w);
+    let (y0, ty) = wrapped_floor(y, h);
     let x1 = if x0 + 1 == w { 0 } else { x0 + 1 };
     let y1 = if y0 + 1 == h { 0 } else { y0 + 1 };
     [
@@ -31,6 +30,24 @@ pub fn bilinear_taps(uv: [f32; 2], w: usize, h: usize) -> [(usize, f64); 4] {
         (y1 * w + x0, (1.0 - tx) * ty),
         (y1 * w + x1, tx * ty),
     ]
+}
+
+/// ⌊x⌋ wrapped into 0..n, and x − ⌊x⌋: the texel left of (or below) a texture coordinate and the
+/// weight of the next one. `floor` then `rem_euclid`, with the floor that needs no libm call
+/// ([`floor_f64`]) and no integer division for coordinates within one wrap of the texture, which is
+/// where lookups land; together they were most of a lookup's time (`bench_step`, 2026-12-08).
+#[inline]
+fn wrapped_floor(x: f64, n: usize) -> (usize, f64) {
+    let f = floor_f64(x);
+    let (i, n) = (f as i64, n as i64);
+    let wrapped = if (0..n).contains(&i) {
+        i
+    } else if (-n..0).contains(&i) {
+        i + n
+    } else {
+        i.rem_euclid(n)
+    };
+    (wrapped as usize, x - f)
 }
 
 /// The lookup operator for one fixed set of UVs.
@@ -125,6 +142,25 @@ mod tests {
     fn texture(h: usize, w: usize, c: usize) -> Result<Tensor> {
         let data: Vec<f32> = (0..h * w * c).map(|i| ((i * 37) % 11) as f32 * 0.1).collect();
         Tensor::from_vec(data, (h, w, c), &Device::Cpu)
+    }
+
+    #[test]
+    fn the_wrapped_floor_is_floor_then_rem_euclid_bit_for_bit() {
+        let reference = |x: f64, n: usize| {
+            let f = x.floor();
+            ((f as i64).rem_euclid(n as i64) as usize, x - f)
+        };
+        let mut rng = Sampler::new(7, 0);
+        let mut xs: Vec<f64> = vec![0.0, 0.5, -0.5, 1.0, -1.0, 511.5, 512.0, -512.0, -512.5, 1023.99, 1e9 + 0.25, -1e9 - 0.25, 4.6e15, -4.6e15, 1e300, -1e300];
+        xs.extend([f64::from_bits(1), -f64::from_bits(1), 1.0 - f64::EPSILON, -(1.0 - f64::EPSILON)]);
+        // UVs as the lookups make them: around [0, 1] and a few periods out.
+        xs.extend((0..20_000).map(|_| (rng.next_f32() as f64 * 6.0 - 3.0) * 512.0 - 0.5));
+        for n in [1, 2, 3, 5, 512] {
+            for &x in &xs {
+                let (got, want) = (wrapped_floor(x, n), reference(x, n));
+                assert!(got.0 == want.0 && got.1.to_bits() == want.1.to_bits(), "x = {x:e}, n = {n}: {got:?} against {want:?}");
+            }
+        }
     }
 
     #[test]
