@@ -30,27 +30,11 @@ impl Frame {
     }
 }
 
-/// ⌊x⌋, the value of `x.floor()` for every f32 (±0, ±∞ and NaN included), without a call into
-/// libm: x86-64's baseline has no rounding instruction (SSE4.1's `roundss`), so `floor` is a
+/// ⌊x⌋, the value of `x.floor()` for every f64 (±0, ±∞ and NaN included), without a call into
+/// libm: x86-64's baseline has no rounding instruction (SSE4.1's `roundsd`), so `floor` is a
 /// function call on every texture and light lookup, which a Monte Carlo step's profile showed
-/// (`floor`, `floorf`: 2–3 % of the 4-spp step, 2026-12-08). Below 2²³ the truncating cast is exact
-/// and at most one above the floor; from there on every f32 is an integer (or ±∞, NaN), its own floor.
-#[inline]
-pub fn floor_f32(x: f32) -> f32 {
-    const ALL_INTEGERS: f32 = (1u32 << 23) as f32;
-    if x.abs() < ALL_INTEGERS && x != 0.0 {
-        let t = x as i32 as f32;
-        if t > x {
-            t - 1.0
-        } else {
-            t
-        }
-    } else {
-        x
-    }
-}
-
-/// [`floor_f32`] for f64 (every f64 from 2⁵² on is an integer).
+/// (`floor`, `floorf`: 2 % of the 4-spp step, 2026-12-08). Below 2⁵² the truncating cast is exact
+/// and at most one above the floor; from there on every f64 is an integer (or ±∞, NaN), its own floor.
 #[inline]
 pub fn floor_f64(x: f64) -> f64 {
     const ALL_INTEGERS: f64 = (1u64 << 52) as f64;
@@ -64,6 +48,13 @@ pub fn floor_f64(x: f64) -> f64 {
     } else {
         x
     }
+}
+
+/// [`floor_f64`] for f32: exact, since an f32 widens to f64 without rounding and its floor is an
+/// f32 again.
+#[inline]
+pub fn floor_f32(x: f32) -> f32 {
+    floor_f64(x as f64) as f32
 }
 
 #[cfg(test)]
