@@ -971,9 +971,6 @@ mod tests {
         Ok(())
     }
 
-    /// A stage boundary's repair: a folded mesh (a sphere with a second one inside it, whose whole
-    /// surface faces into the first) comes out as the outer sphere alone, and its colour carries over
-    /// through the remesh; a healthy mesh is left to the remesh as it is.
     /// A mesh turned inside out at a stage's end stops the pass with an error naming the stage
     /// and the iteration, where a fold (below half the surface) is left to the repair.
     #[test]
@@ -994,6 +991,9 @@ mod tests {
         Ok(())
     }
 
+    /// A stage boundary's repair: a folded mesh (a sphere with a second one inside it, whose whole
+    /// surface faces into the first) comes out as the outer sphere alone, and its colour carries over
+    /// through the remesh; a healthy mesh is left to the remesh as it is.
     #[test]
     fn a_folded_stage_mesh_is_unfolded_and_keeps_its_colour() -> Result<()> {
         use crate::geometry::icosphere::icosphere;

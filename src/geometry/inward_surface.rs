@@ -27,7 +27,7 @@ pub const FOLDED_SHARE: f64 = 0.01;
 /// Above this share more of the surface faces into the mesh than out of it: the mesh has turned
 /// inside out, which an optimisation does only when it has diverged (the folds a healthy pass makes
 /// measured 0–18 %). No re-extraction repairs it (what such a mesh encloses is not the object: in
-/// the one case seen, 94 %, the re-extracted surface had 40× the hull's triangles and remeshing it
+/// the one case seen, 94 %, the re-extracted surface had about 40× the hull's triangles and remeshing it
 /// ran for minutes while growing), so the geometry pass stops with an error instead.
 pub const INSIDE_OUT_SHARE: f64 = 0.5;
 
